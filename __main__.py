@@ -1,0 +1,5 @@
+"""`python -m drivectl`."""
+
+from drivectl.tools.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,49 @@
+"""The Axis protocol: what every controller loop talks to (SimAxis, CanopenAxis).
+
+Units are SI on this side of the seam: m, m/s, and the axis's effort unit (N or V). Counts and
+per-mille exist only inside the transports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+
+@dataclass(slots=True, frozen=True)
+class Feedback:
+    """One cycle's sample of the axis, taken at SYNC k (time ``time``)."""
+
+    time: float  # s, simulated or bus time of the sample
+    position: float  # m, as the encoder reports it (quantised at the transport)
+    velocity: float  # m/s, as the drive reports it (0x606C on a CiA 402 drive)
+
+
+class AxisError(RuntimeError):
+    """An axis cannot do what was asked (not enabled, fault active, transport lost)."""
+
+
+@runtime_checkable
+class Axis(Protocol):
+    """A feed axis driven by an effort setpoint once per cycle.
+
+    ``read()`` returns the sample of the next cycle: the first call returns the sample at t = 0,
+    every later call first lets the axis advance one cycle (SYNC) and then returns its sample.
+    ``write(effort)`` sets the effort computed from that sample.
+    """
+
+    name: str
+    dt: float
+    effort_unit: str
+
+    def read(self) -> Feedback: ...
+
+    def write(self, effort: float) -> None: ...
+
+    def enable(self) -> None: ...
+
+    def disable(self) -> None: ...
+
+    def quick_stop(self) -> None: ...
+
+    def fault_reset(self) -> None: ...

@@ -1,0 +1,1 @@
+"""drivectl.plant_emulator"""

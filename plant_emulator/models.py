@@ -331,16 +331,18 @@ class Plant:
         self.bodies = design.bodies
         self._coulomb = [b.has_coulomb for b in design.bodies]
         self._any_coulomb = any(self._coulomb)
-        # the mean viscous coefficient is in the exact linear part; the direction-dependent
-        # remainder (c(dir) - c_mean) v is a small explicit force (+-7 % of c on rigid-x)
-        self._c_mean = [(b.c_pos + b.c_neg) / 2 for b in design.bodies]
-        self._c_half = [(b.c_pos - b.c_neg) / 2 for b in design.bodies]
-        self._asym = any(abs(c) > 0 for c in self._c_half)
+        # viscous friction depends on the direction of motion: the exact linear part is discretised
+        # once per combination of directions, and each substep uses the one it moves in
+        self._asym = any(b.c_pos != b.c_neg for b in design.bodies)
         cpl = design.coupling
         self._gap = cpl.gap if cpl else 0.0
-        self.A, self.B = self._matrices(engaged=True)
-        if self._gap > 0:
-            self.A_free, self.B_free = self._matrices(engaged=False)
+        combos = [(1, 1)] if not self._asym else [(a, b) for a in (1, -1) for b in (1, -1)]
+        self._mats = {}
+        for dirs in combos:
+            self._mats[(True, *dirs)] = self._matrices(engaged=True, dirs=dirs)
+            if self._gap > 0:
+                self._mats[(False, *dirs)] = self._matrices(engaged=False, dirs=dirs)
+        self.A, self.B = self._mats[(True, 1, 1)]
         # delay: split into whole cycles and a fraction, looked up per substep
         d = design.input_delay / self.dt
         self._delay_cycles = int(math.floor(d + 1e-9))
@@ -350,14 +352,14 @@ class Plant:
         self._dist_w = 2 * math.pi * design.disturbance_frequency
         self._dist_a = design.disturbance_amplitude
 
-    def _matrices(self, engaged: bool) -> tuple[list[list[float]], list[list[float]]]:
+    def _matrices(self, engaged: bool, dirs: tuple[int, int]) -> tuple[list[list[float]], list[list[float]]]:
         d = self.design
         n = self.n_bodies
         ac = np.zeros((2 * n, 2 * n))
         bc = np.zeros((2 * n, n))
         for i, b in enumerate(d.bodies):
             ac[2 * i, 2 * i + 1] = 1.0
-            ac[2 * i + 1, 2 * i + 1] = -self._c_mean[i] / b.mass
+            ac[2 * i + 1, 2 * i + 1] = -(b.c_pos if dirs[i] > 0 else b.c_neg) / b.mass
             bc[2 * i + 1, i] = 1.0 / b.mass
         table = n - 1
         ac[2 * table + 1, 2 * table] -= d.table_stiffness / d.bodies[table].mass
@@ -429,13 +431,6 @@ class Plant:
             f += amp * math.sin(2 * math.pi * x / period + phase)
         return f
 
-    def _friction_explicit(self, i: int, v: float) -> float:
-        """Direction-dependent viscous remainder (explicit part of the friction)."""
-        ch = self._c_half[i]
-        if ch == 0.0 or v == 0.0:
-            return 0.0
-        return -ch * v if v > 0.0 else ch * v
-
     def _coulomb_limit(self, i: int, v_ref: float, direction: float) -> float:
         """Coulomb (+ Stribeck) magnitude for motion in ``direction`` at speed |v_ref|."""
         b = self.bodies[i]
@@ -449,6 +444,7 @@ class Plant:
         (a00, a01), (a10, a11) = self.A
         b0 = self.B[0][0]
         b1 = self.B[1][0]
+        asym = self._asym
         x, v = state.s
         h = self.h
         t = state.t
@@ -457,12 +453,16 @@ class Plant:
         f_in = self._input(state, effort, 0)
         for i in range(self.substeps):
             f = self._input(state, effort, i) if delayed else f_in
-            if self._asym:
-                f += self._friction_explicit(0, v)
             if has_forces:
                 f += self._table_force(t + (i + 0.5) * h, x + 0.5 * h * v, v)
             if self._dist_a:
                 f += self._dist_a * math.sin(self._dist_w * (t + (i + 0.5) * h))
+            if asym:
+                # direction of motion in this substep: of the velocity, or of the force from rest
+                direction = 1 if (v > 0.0 or (v == 0.0 and f >= 0.0)) else -1
+                A, B = self._mats[(True, direction, 1)]
+                (a00, a01), (a10, a11) = A
+                b0, b1 = B[0][0], B[1][0]
             xf = a00 * x + a01 * v + b0 * f
             vf = a10 * x + a11 * v + b1 * f
             if self._coulomb[0]:
@@ -497,16 +497,13 @@ class Plant:
             x0, v0, x1, v1 = s
             f0 = self._input(state, effort, i) if delayed else f_in
             f1 = 0.0
-            if self._asym:
-                f0 += self._friction_explicit(0, v0)
-                f1 += self._friction_explicit(1, v1)
             if has_forces:
                 f1 += self._table_force(t + (i + 0.5) * h, x1 + 0.5 * h * v1, v1)
             if self._dist_a:
                 dist = self._dist_a * math.sin(self._dist_w * (t + (i + 0.5) * h))
                 f0 += dist
                 f1 += dist
-            A, B = self.A, self.B
+            engaged = True
             if gap:
                 rel = x0 - x1
                 half = 0.5 * gap
@@ -520,7 +517,13 @@ class Plant:
                     f0 -= kh
                     f1 += kh
                 else:
-                    A, B = self.A_free, self.B_free
+                    engaged = False
+            if self._asym:
+                d0 = 1 if (v0 > 0.0 or (v0 == 0.0 and f0 >= 0.0)) else -1
+                d1 = 1 if (v1 > 0.0 or (v1 == 0.0 and f1 + f0 >= 0.0)) else -1
+                A, B = self._mats[(engaged, d0, d1)]
+            else:
+                A, B = self._mats[(engaged, 1, 1)]
             new = [
                 A[r][0] * x0 + A[r][1] * v0 + A[r][2] * x1 + A[r][3] * v1 + B[r][0] * f0 + B[r][1] * f1
                 for r in range(4)

@@ -1,0 +1,56 @@
+"""Small test doubles shared by the tests (a PD controller and a sine reference)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivectl.controllers.base import Controller, Settings, param
+from drivectl.profiles.base import Reference
+
+
+@dataclass
+class PdSettings(Settings):
+    kp: float = param(3.0e6, lo=0.0)
+    kd: float = param(1.0e4, lo=0.0)
+    mass: float = param(88.08, lo=0.0)
+    fc: float = param(46.7, lo=0.0)
+    c: float = param(499.0, lo=0.0)
+
+
+class PdController(Controller):
+    """PD with model feed-forward; a stand-in that depends on nothing under test."""
+
+    name = "test-pd"
+    SettingsClass = PdSettings
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, reference, feedback):
+        s = self.settings
+        rv = reference.velocity
+        ff = s.mass * reference.acceleration + s.c * rv + (s.fc if rv > 0 else -s.fc if rv < 0 else 0.0)
+        return ff + s.kp * (reference.position - feedback.position) + s.kd * (rv - feedback.velocity)
+
+
+@dataclass
+class SineProfile:
+    amplitude: float = 0.01
+    freq: float = 0.5
+    duration: float = 2.0
+
+    @property
+    def start_position(self) -> float:
+        return 0.0
+
+    def sample(self, t):
+        w = 2 * math.pi * self.freq
+        a = self.amplitude
+        return a * np.sin(w * t), a * w * np.cos(w * t), -a * w * w * np.sin(w * t), -a * w**3 * np.cos(w * t)
+
+    def at(self, t: float) -> Reference:
+        p, v, acc, j = (float(x) for x in self.sample(np.array(t)))
+        return Reference(p, v, acc, j)

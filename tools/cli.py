@@ -1,0 +1,197 @@
+"""The `drivectl` command line.
+
+Exit codes: 0 done; 1 the run was stopped by a limit or an axis error (trace kept); 2 bad input
+(one line on stderr naming the file and the key); 130 / 143 interrupted by SIGINT / SIGTERM (the
+axis quick-stopped and disabled, the trace kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from drivectl import __version__
+
+EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, delivered like Ctrl-C so the servo loop stops the axis the same way."""
+
+
+_signals_seen: list[int] = []
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001 - signal handler signature
+    _signals_seen.append(signum)
+    raise _Terminated()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="drivectl",
+        description="Drive controller for ball-screw feed axes (CiA 402 / emulated drives).",
+    )
+    p.add_argument("--version", action="version", version=f"drivectl {__version__}")
+    p.add_argument("--config", metavar="FILE", help="machine configuration TOML (default: $DRIVECTL_CONFIG, "
+                   "else the embedded emulated machine)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    t = sub.add_parser("trace", help="run an axis through its profile and record a trace + plot",
+                       description="Run the axis's profile under its controller on the simulated axis "
+                       "(the plant of the configuration, with the CANopen one-cycle transport delay and "
+                       "76.29 nm encoder quantisation), write the trace (format v1) and a PNG, and print "
+                       "a summary.")
+    t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
+    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
+    t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
+    t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
+                   help="add a physical effect to the simulated plant, e.g. backlash:width=20e-6 (repeatable)")
+    t.add_argument("--duration", type=float, help="run length in s (default: the profile's)")
+    t.add_argument("--noise", type=float, default=0.0, metavar="EFFORT",
+                   help="std of a Gaussian force noise on the plant, in the effort unit (default 0)")
+    t.add_argument("--seed", type=int, default=0, help="seed of the force noise")
+    t.add_argument("--out", default="traces", metavar="DIR", help="folder for AXIS.csv and the PNG (default traces)")
+    t.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
+    pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
+    pl.add_argument("--out", metavar="PNG", help="output PNG (default: beside the first trace)")
+
+    su = sub.add_parser("summary", help="tracking error, energy and chattering of trace files")
+    su.add_argument("traces", nargs="+", metavar="TRACE.csv")
+    su.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from drivectl.controllers.base import SettingsError
+    from drivectl.controllers.servo import LimitError
+    from drivectl.plant_emulator.models import PlantError
+    from drivectl.profiles.base import ProfileError
+    from drivectl.tools.config import ConfigError
+    from drivectl.tools.trace import TraceError
+
+    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError)
+    try:
+        if args.command == "trace":
+            return cmd_trace(args)
+        if args.command == "plot":
+            return cmd_plot(args)
+        if args.command == "summary":
+            return cmd_summary(args)
+    except bad_input as exc:
+        print(f"drivectl: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    return EXIT_BAD_INPUT
+
+
+# --------------------------------------------------------------------------------------------------
+def cmd_trace(args: argparse.Namespace) -> int:
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel, StopReason, run_channels
+    from drivectl.plant_emulator.effects import parse_effect
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.profiles.library import load_profile
+    from drivectl.tools.config import load_config
+    from drivectl.tools.metrics import summarize
+    from drivectl.tools.plot import plot_traces
+
+    cfg = load_config(args.config)
+    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    effects = [parse_effect(text) for text in args.effect]
+    channels = []
+    for name in names:
+        ac = cfg.axis(name)
+        spec = load_plant(args.plant or ac.plant)
+        for ename, eparams in effects:
+            spec = spec.with_effect(ename, **eparams)
+        profile = load_profile(args.profile or ac.profile, axis=name)
+        ctrl_name = args.controller or ac.controller
+        settings = ac.controller_settings if ctrl_name == ac.controller else {}
+        controller = make_controller(ctrl_name, cfg.cycle_s, settings, plant=spec, axis=name,
+                                     source=f"{cfg.source}: axes.{name}.controller_settings")
+        axis = SimAxis(spec.build(cfg.cycle_s), name=name, resolution=ac.encoder_m_per_count,
+                       force_noise=args.noise, seed=args.seed, initial_position=profile.start_position)
+        meta = {"plant": spec.name, "profile": args.profile or ac.profile, "bus": "sim (SimAxis)",
+                "config": cfg.source}
+        if effects:
+            meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
+        channels.append(Channel(axis, controller, profile, ac.limits, meta))
+
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    _signals_seen.clear()
+    try:
+        result = run_channels(channels, duration=args.duration, progress=not args.quiet and sys.stderr.isatty())
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    out = Path(args.out)
+    written = []
+    for name, tr in result.traces.items():
+        written.append(tr.write(out / f"{name}.csv"))
+    if not args.no_plot and result.cycles > 1:
+        written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
+                                   title=f"drivectl trace: {', '.join(names)}"))
+    _print_summary({n: summarize(tr) for n, tr in result.traces.items()}, result.traces)
+    for p in written:
+        print(f"wrote {p}")
+    if result.stop is StopReason.INTERRUPTED:
+        print(f"drivectl: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
+        return 143 if signal.SIGTERM in _signals_seen else 130
+    if not result.ok:
+        print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
+        return EXIT_STOPPED
+    return EXIT_OK
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    from drivectl.tools.plot import plot_traces
+    from drivectl.tools.trace import Trace
+
+    traces = {}
+    for i, path in enumerate(args.traces):
+        tr = Trace.read(path)
+        traces[tr.meta.get("axis", Path(path).stem) + ("" if i == 0 else f"#{i}")] = tr
+    out = Path(args.out) if args.out else Path(args.traces[0]).with_suffix(".png")
+    plot_traces(traces, out, title=", ".join(Path(p).name for p in args.traces))
+    print(f"wrote {out}")
+    return EXIT_OK
+
+
+def cmd_summary(args: argparse.Namespace) -> int:
+    import json
+
+    from drivectl.tools.metrics import summarize
+    from drivectl.tools.trace import Trace
+
+    traces = {p: Trace.read(p) for p in args.traces}
+    rows = {p: summarize(tr) for p, tr in traces.items()}
+    if args.json:
+        print(json.dumps(rows))
+    else:
+        _print_summary(rows, traces)
+    return EXIT_OK
+
+
+def _print_summary(rows: dict, traces: dict) -> None:
+    head = f"{'trace':<12} {'max um':>9} {'mean um':>9} {'rms um':>9} {'energy':>10} {'sigma':>9} {'du rms':>9} {'stop':>10}"
+    print(head)
+    print("-" * len(head))
+    for name, m in rows.items():
+        tr = traces[name]
+        unit = tr.effort_unit or "?"
+        energy = f"{m['energy_J']:.3g} {'J' if unit == 'N' else unit + 'm'}"
+        print(f"{str(name):<12} {m['max_um']:>9.2f} {m['mean_um']:>9.2f} {m['rms_um']:>9.2f} {energy:>10} "
+              f"{m['sigma']:>9.3g} {m['du_rms']:>9.3g} {tr.meta.get('stop', '-'):>10}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

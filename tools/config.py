@@ -1,0 +1,181 @@
+"""Machine configuration: the axes, their plants, controllers, profiles and limits.
+
+An embedded default serves when no file is given (three emulated axes: x = rigid-x and y = rigid-y
+under paper 004's ASMC with gain law 14 on the circle of eq (25), z = two-mass under paper 000's
+PID-NFTSM on the seed-000 move). A file given with ``--config`` (or ``DRIVECTL_CONFIG``) has the same
+shape; every error names the file and the key.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from drivectl.controllers.servo import Limits
+from drivectl.driver.units import DEFAULT_RESOLUTION_M
+
+DEFAULT_CONFIG_TOML = """\
+# drivectl machine configuration (embedded default: emulated drives, no hardware)
+cycle_s = 0.001                 # servo cycle = SYNC period
+
+[axes.x]
+plant = "rigid-x"               # built-in plant name or a plant TOML file
+controller = "asmc"             # smc | vprl | pid-nftsm | asmc | pid | pid-dob
+profile = "circle"              # built-in profile name or a profile TOML file
+encoder_m_per_count = 76.29e-9
+[axes.x.controller_settings]
+law = 14                        # paper 004 gain law (11..14)
+[axes.x.limits]
+position_m = [-0.1, 0.1]        # soft limits
+max_effort = 2000.0             # N, the command is clipped here
+following_error_m = 0.001       # window
+following_time_s = 0.01
+
+[axes.y]
+plant = "rigid-y"
+controller = "asmc"
+profile = "circle"
+encoder_m_per_count = 76.29e-9
+[axes.y.controller_settings]
+law = 14
+[axes.y.limits]
+position_m = [-0.1, 0.1]
+max_effort = 2000.0
+following_error_m = 0.001
+following_time_s = 0.01
+
+[axes.z]
+plant = "two-mass"
+controller = "pid-nftsm"
+profile = "seed-000"
+encoder_m_per_count = 76.29e-9
+[axes.z.limits]
+position_m = [-0.01, 0.1]
+max_effort = 50.0               # V
+following_error_m = 0.001
+following_time_s = 0.01
+"""
+
+
+class ConfigError(ValueError):
+    """The machine configuration is invalid; one line naming the file and the key."""
+
+
+@dataclass(frozen=True)
+class AxisConfig:
+    name: str
+    plant: str
+    controller: str
+    profile: str
+    controller_settings: dict[str, Any] = field(default_factory=dict)
+    encoder_m_per_count: float = DEFAULT_RESOLUTION_M
+    limits: Limits = field(default_factory=Limits)
+
+
+@dataclass(frozen=True)
+class MachineConfig:
+    source: str
+    cycle_s: float
+    axes: dict[str, AxisConfig]
+
+    def axis(self, name: str) -> AxisConfig:
+        if name not in self.axes:
+            raise ConfigError(f"{self.source}: axes.{name}: no such axis (have {', '.join(self.axes)})")
+        return self.axes[name]
+
+
+def load_config(path: str | Path | None = None) -> MachineConfig:
+    """The file at ``path``, else ``$DRIVECTL_CONFIG``, else the embedded default."""
+    path = path or os.environ.get("DRIVECTL_CONFIG")
+    if not path:
+        return parse_config(tomllib.loads(DEFAULT_CONFIG_TOML), "<embedded default>")
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such configuration file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{p}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return parse_config(data, str(p))
+
+
+def _number(src: str, key: str, value: Any, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ConfigError(f"{src}: {key}: expected a number, got {value!r}")
+    if positive and value <= 0:
+        raise ConfigError(f"{src}: {key}: must be > 0, got {value!r}")
+    return float(value)
+
+
+def _string(src: str, key: str, value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{src}: {key}: expected a non-empty string, got {value!r}")
+    return value
+
+
+def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
+    unknown = set(data) - {"cycle_s", "axes"}
+    if unknown:
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, axes)")
+    cycle = _number(src, "cycle_s", data.get("cycle_s", 0.001), positive=True)
+    axes_raw = data.get("axes")
+    if not isinstance(axes_raw, dict) or not axes_raw:
+        raise ConfigError(f"{src}: axes: expected at least one [axes.NAME] table")
+    axes: dict[str, AxisConfig] = {}
+    for name, raw in axes_raw.items():
+        k = f"axes.{name}"
+        if not isinstance(raw, dict):
+            raise ConfigError(f"{src}: {k}: expected a table")
+        allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits"}
+        extra = set(raw) - allowed
+        if extra:
+            raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
+        for req in ("plant", "controller", "profile"):
+            if req not in raw:
+                raise ConfigError(f"{src}: {k}.{req}: missing")
+        settings = raw.get("controller_settings", {})
+        if not isinstance(settings, dict):
+            raise ConfigError(f"{src}: {k}.controller_settings: expected a table")
+        lim_raw = raw.get("limits", {})
+        if not isinstance(lim_raw, dict):
+            raise ConfigError(f"{src}: {k}.limits: expected a table")
+        lim_extra = set(lim_raw) - {"position_m", "max_effort", "following_error_m", "following_time_s"}
+        if lim_extra:
+            raise ConfigError(f"{src}: {k}.limits.{sorted(lim_extra)[0]}: unknown key")
+        position = lim_raw.get("position_m")
+        if position is not None:
+            if not (isinstance(position, list) and len(position) == 2):
+                raise ConfigError(f"{src}: {k}.limits.position_m: expected [lower, upper] in m, got {position!r}")
+            lo = _number(src, f"{k}.limits.position_m", position[0])
+            hi = _number(src, f"{k}.limits.position_m", position[1])
+            if not lo < hi:
+                raise ConfigError(f"{src}: {k}.limits.position_m: lower {lo} must be below upper {hi}")
+            position = (lo, hi)
+        limits = Limits(
+            position=position,
+            max_effort=_number(src, f"{k}.limits.max_effort", lim_raw.get("max_effort", math.inf), positive=True)
+            if "max_effort" in lim_raw
+            else math.inf,
+            following_error=_number(
+                src, f"{k}.limits.following_error_m", lim_raw.get("following_error_m", 5e-3), positive=True
+            ),
+            following_time=_number(src, f"{k}.limits.following_time_s", lim_raw.get("following_time_s", 0.0)),
+        )
+        axes[name] = AxisConfig(
+            name=name,
+            plant=_string(src, f"{k}.plant", raw["plant"]),
+            controller=_string(src, f"{k}.controller", raw["controller"]),
+            profile=_string(src, f"{k}.profile", raw["profile"]),
+            controller_settings=dict(settings),
+            encoder_m_per_count=_number(
+                src, f"{k}.encoder_m_per_count", raw.get("encoder_m_per_count", DEFAULT_RESOLUTION_M), positive=True
+            ),
+            limits=limits,
+        )
+    return MachineConfig(src, cycle, axes)

@@ -20,8 +20,8 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.driver.axis import Feedback
-from drivectl.profiles.base import Profile, Reference
 from drivectl.plant_emulator.models import Plant
+from drivectl.profiles.base import Profile, Reference
 
 
 @dataclass

@@ -183,7 +183,7 @@ class PlantSpec:
         lines += [f'model = "{self.model}"', f'effort_unit = "{self.effort_unit}"', "", "[params]"]
         lines += [f"{k} = {_toml_float(v)}" for k, v in self.params.items()]
         for name, params in self.effects:
-            lines += ["", f"[[effects]]", f'name = "{name}"']
+            lines += ["", "[[effects]]", f'name = "{name}"']
             lines += [f"{k} = {_toml_float(v)}" for k, v in params.items()]
         return "\n".join(lines) + "\n"
 

@@ -1,11 +1,27 @@
-"""The reference an axis should follow: r, r', r'', r''' at any time."""
+"""The reference an axis should follow: r, r', r'', r''' at any time.
+
+Every profile has a ``duration`` and a ``start_position`` (r at t = 0; the axis must sit there before
+anything moves) and can be evaluated at one instant (``at``) or, vectorised, at many (``sample``).
+Outside ``[0, duration]`` a profile holds: before t = 0 it holds its start, after ``duration`` its last
+position with velocity, acceleration and jerk 0. Periodic profiles (:class:`~drivectl.profiles.circle.Circle`)
+are the exception: they just continue their formula, which is what a servo run longer than one
+revolution wants.
+
+:func:`check_limits` samples a profile densely and refuses it if it leaves the soft limits or exceeds a
+velocity/acceleration bound; it is meant to run before anything moves.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+
+class ProfileError(ValueError):
+    """A profile is invalid or violates a limit; the message is one line naming the profile/file and field."""
 
 
 @dataclass(slots=True, frozen=True)
@@ -18,17 +34,148 @@ class Reference:
     jerk: float = 0.0
 
 
+Samples = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 @runtime_checkable
 class Profile(Protocol):
     """A reference trajectory for one axis.
 
-    ``duration`` is the time the profile covers (it holds its last position afterwards);
-    ``sample`` evaluates r, r', r'', r''' at many times at once (the servo loop samples the whole
-    run up front so that the per-cycle path does no trajectory maths).
+    ``duration`` is the time the profile covers (it holds its last position afterwards, except periodic
+    profiles, which continue); ``start_position`` is r(0); ``sample`` evaluates r, r', r'', r''' at many
+    times at once (the servo loop samples the whole run up front so that the per-cycle path does no
+    trajectory maths).
     """
 
     duration: float
 
+    @property
+    def start_position(self) -> float: ...
+
     def at(self, t: float) -> Reference: ...
 
-    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
+    def sample(self, t: np.ndarray) -> Samples: ...
+
+
+class ProfileBase:
+    """Shared plumbing for the built-in profiles: subclasses set ``name``, ``duration``; implement ``sample``.
+
+    ``sample`` accepts any array-like of times (also 0-d) and returns four float arrays of its shape.
+    """
+
+    name: str
+    duration: float
+
+    def sample(self, t: np.ndarray) -> Samples:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def at(self, t: float) -> Reference:
+        p, v, a, j = self.sample(np.array([float(t)]))
+        return Reference(float(p[0]), float(v[0]), float(a[0]), float(j[0]))
+
+    @property
+    def start_position(self) -> float:
+        return self.at(0.0).position
+
+    @property
+    def end_position(self) -> float:
+        """r(duration): where the profile ends (and holds, unless periodic)."""
+        return self.at(self.duration).position
+
+    def __repr__(self) -> str:
+        kind = type(self).__name__
+        return f"<{kind} {self.name!r}: {self.duration:.6g} s from {self.start_position:.6g} m>"
+
+
+def as_times(t: np.ndarray | float) -> np.ndarray:
+    """Times as a float64 array (a copy is not needed: callers never write into it)."""
+    return np.asarray(t, dtype=np.float64)
+
+
+def require(
+    name: str, field: str, value: object, *, gt: float | None = None, ge: float | None = None
+) -> float:
+    """Check a constructor argument: a finite real number, optionally > gt / >= ge; returns it as float.
+
+    Raises ProfileError("profile NAME: FIELD: must be > 0, got -1") so that a bad argument is named.
+    """
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ProfileError(f"profile {name}: {field}: must be a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise ProfileError(f"profile {name}: {field}: must be finite, got {value!r}")
+    if gt is not None and not x > gt:
+        raise ProfileError(f"profile {name}: {field}: must be > {gt:g}, got {value!r}")
+    if ge is not None and not x >= ge:
+        raise ProfileError(f"profile {name}: {field}: must be >= {ge:g}, got {value!r}")
+    return x
+
+
+def profile_name(profile: Profile) -> str:
+    """The name used in messages; profiles not built here may lack one."""
+    return str(getattr(profile, "name", type(profile).__name__))
+
+
+# Slack on every limit: profile maths rounds (ruckig's cruise velocity is vmax -+ 1 ulp), and a move
+# planned right at a limit must pass.
+LIMIT_TOLERANCE = 1e-9
+
+
+def check_limits(
+    profile: Profile,
+    *,
+    position: tuple[float, float] | None = None,
+    vmax: float | None = None,
+    amax: float | None = None,
+    until: float | None = None,
+    rate: float = 2000.0,
+) -> None:
+    """Refuse ``profile`` if it leaves the soft limits or exceeds |v| <= vmax or |a| <= amax.
+
+    The profile is sampled at ``rate`` Hz (at least 1 kHz) from t = 0 to ``until`` (default its
+    ``duration``; pass the run length when the servo runs longer, e.g. a circle continuing), endpoints
+    included. Raises ProfileError naming the earliest violation and its time, e.g.
+    "profile circle: position 0.0400 m at t=0.000 s outside soft limits [-0.03, 0.03] m".
+    A tolerance of 1e-9 (in the SI unit of each quantity) absorbs rounding.
+    """
+    name = profile_name(profile)
+    if position is not None:
+        if len(position) != 2:
+            raise ProfileError(f"profile {name}: position limits: expected (lower, upper), got {position!r}")
+        lo, hi = (require(name, "position limits", x) for x in position)
+        if not lo < hi:
+            raise ProfileError(f"profile {name}: position limits: lower must be below upper, got {position}")
+    if vmax is not None:
+        require(name, "vmax limit", vmax, gt=0)
+    if amax is not None:
+        require(name, "amax limit", amax, gt=0)
+    require(name, "rate", rate, ge=1000.0)
+    span = profile.duration if until is None else require(name, "until", until, ge=0)
+    n = max(2, math.ceil(span * rate) + 1)
+    t = np.linspace(0.0, span, n)
+    pos, vel, acc, _ = profile.sample(t)
+    tol = LIMIT_TOLERANCE
+
+    # (index of first violation, message builder); the earliest in time wins, position first on a tie.
+    found: list[tuple[int, str]] = []
+    if position is not None:
+        lo, hi = position
+        bad = (pos < lo - tol) | (pos > hi + tol)
+        if bad.any():
+            i = int(np.argmax(bad))
+            where = f"at t={t[i]:.3f} s outside soft limits [{lo:g}, {hi:g}] m"
+            found.append((i, f"position {pos[i]:.4f} m {where}"))
+    if vmax is not None:
+        bad = np.abs(vel) > vmax + tol
+        if bad.any():
+            i = int(np.argmax(bad))
+            found.append((i, f"velocity {vel[i]:.4f} m/s at t={t[i]:.3f} s exceeds the limit {vmax:g} m/s"))
+    if amax is not None:
+        bad = np.abs(acc) > amax + tol
+        if bad.any():
+            i = int(np.argmax(bad))
+            where = f"at t={t[i]:.3f} s exceeds the limit {amax:g} m/s^2"
+            found.append((i, f"acceleration {acc[i]:.4f} m/s^2 {where}"))
+    if found:
+        _, msg = min(found, key=lambda f: f[0])  # stable: position before velocity before acceleration
+        raise ProfileError(f"profile {name}: {msg}")

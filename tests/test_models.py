@@ -140,9 +140,10 @@ def test_two_mass_is_linear_so_one_substep_is_exact():
 
 
 def test_rigid_substep_halving_changes_tracking_by_less_than_one_percent():
+    from helpers import PdController, SineProfile
+
     from drivectl.controllers.servo import run
     from drivectl.plant_emulator.sim_axis import SimAxis
-    from helpers import PdController, SineProfile
 
     errs = []
     for sub in (10, 20):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import PdController, SineProfile
 
-from drivectl.controllers.servo import Limits, LimitError, StopReason, run
+from drivectl.controllers.servo import LimitError, Limits, StopReason, run
 from drivectl.driver.axis import Axis
 from drivectl.driver.cia402 import PowerState
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder

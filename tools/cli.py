@@ -182,7 +182,8 @@ def cmd_summary(args: argparse.Namespace) -> int:
 
 
 def _print_summary(rows: dict, traces: dict) -> None:
-    head = f"{'trace':<12} {'max um':>9} {'mean um':>9} {'rms um':>9} {'energy':>10} {'sigma':>9} {'du rms':>9} {'stop':>10}"
+    head = (f"{'trace':<12} {'max um':>9} {'mean um':>9} {'rms um':>9} {'energy':>10} {'sigma':>9} "
+            f"{'du rms':>9} {'stop':>10}")
     print(head)
     print("-" * len(head))
     for name, m in rows.items():

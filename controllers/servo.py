@@ -21,7 +21,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.driver.axis import Axis, AxisError
-from drivectl.profiles.base import Profile, Reference
+from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits
 from drivectl.tools.trace import Trace, format_value
 
 
@@ -127,7 +127,7 @@ def run_channels(
 
     refs = []
     for ch in channels:
-        _check_profile(ch, t)
+        _check_profile(ch, float(t[-1]))
         refs.append([a.tolist() for a in ch.profile.sample(t)])
     rec = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in channels]
     clipped = [0] * len(channels)
@@ -208,19 +208,14 @@ class _Stop(Exception):
     """Internal: a limit ended the run."""
 
 
-def _check_profile(ch: Channel, t: np.ndarray) -> None:
+def _check_profile(ch: Channel, until: float) -> None:
+    """Refuse a profile that leaves the soft limits anywhere in the run (before anything moves)."""
     lim = ch.limits
-    name = ch.axis.name
     if lim.position is not None:
-        pos = ch.profile.sample(t)[0]
-        lo, hi = lim.position
-        bad = (pos < lo) | (pos > hi)
-        if bad.any():
-            j = int(np.argmax(bad))
-            raise LimitError(
-                f"axis {name}: profile reaches {pos[j]:.6f} m at t={t[j]:.3f} s, outside the soft limits "
-                f"[{lo:g}, {hi:g}] m; nothing moved"
-            )
+        try:
+            check_limits(ch.profile, position=lim.position, until=until)
+        except ProfileError as exc:
+            raise LimitError(f"axis {ch.axis.name}: {exc}; nothing moved") from None
     ch.following_since = None
 
 

@@ -27,15 +27,17 @@ from drivectl.plant_emulator.batch import run_batch
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.library import load_profile
+from drivectl.tools.config import load_config
 
 DT = 0.001
 
 
 def single_run_seconds() -> tuple[float, float]:
-    spec = load_plant("two-mass")
-    profile = load_profile("seed-000", axis="z")
+    z = load_config().axis("z")  # the embedded machine's axis z: two-mass + PID-NFTSM on seed-000
+    spec = load_plant(z.plant)
+    profile = load_profile(z.profile, axis="z")
     axis = SimAxis(spec.build(DT), name="z", initial_position=profile.start_position)
-    controller = TdePidNftsm(DT)
+    controller = TdePidNftsm(DT, z.controller_settings)
     t0 = time.perf_counter()
     res = run(axis, controller, profile)
     wall = time.perf_counter() - t0
@@ -44,7 +46,7 @@ def single_run_seconds() -> tuple[float, float]:
 
 def batch_seconds(members: int, seed: int = 0) -> tuple[float, float, int]:
     rng = np.random.default_rng(seed)
-    defaults = TdePidNftsm(DT).settings
+    defaults = TdePidNftsm(DT, load_config().axis("z").controller_settings).settings
 
     def around(value: float, spread: float) -> np.ndarray:
         return value * np.exp(rng.uniform(-spread, spread, members))
@@ -56,6 +58,7 @@ def batch_seconds(members: int, seed: int = 0) -> tuple[float, float, int]:
         kd=around(defaults.kd, 0.3),
         rho1=around(defaults.rho1, 0.5),
         m_tilde=around(defaults.m_tilde, 0.2),
+        accel_filter_hz=defaults.accel_filter_hz,
     )
     spec = load_plant("two-mass")
     profile = load_profile("seed-000", axis="z")

@@ -67,45 +67,53 @@ def run_batch(
     t = np.arange(n) * dt
     pr, vr, ar, jr = (a.tolist() for a in profile.sample(t))
 
+    if plant.substeps != 1:
+        raise ValueError("batch: a linear plant steps once per cycle; build it with substeps=1")
     nb = plant.n_bodies
     A = np.array(plant.A)
     B = np.array(plant.B)
-    AT = A.T.copy()
-    s = np.zeros((members, 2 * nb))
-    s[:, 0::2] = profile.sample(np.array([0.0]))[0][0]
-    b_u = B[:, 0]  # the effort acts on body 0
+    # state as rows (2 nb, N): each state variable is one contiguous array over the batch
+    s = np.zeros((2 * nb, members))
+    s[0::2] = profile.sample(np.array([0.0]))[0][0]
+    nxt = np.empty_like(s)
+    b_u = B[:, :1].copy()  # the effort acts on body 0, column vector for broadcasting
     b_d = B.sum(axis=1)  # paper 000's d1 = d2 acts on every body
     dist_a, dist_w = plant.design.disturbance_amplitude, 2 * math.pi * plant.design.disturbance_frequency
     h = plant.h
-    if plant.substeps != 1:
-        raise ValueError("batch: a linear plant steps once per cycle; build it with substeps=1")
+    inv_res = 1.0 / resolution if resolution else 0.0
 
     max_err = np.zeros(members)
     sq_err = np.zeros(members)
     sq_du = np.zeros(members)
     latched = np.zeros(members)
     prev_u = np.zeros(members)
+    e = np.empty(members)
     controller.reset()
     for k in range(n):
-        pos = s[:, -2]
-        vel = s[:, -1]
+        pos = s[-2]
+        vel = s[-1]
         if resolution:
-            pos = np.round(pos / resolution) * resolution
-            vel = np.round(vel / resolution) * resolution
-        fb = Feedback(k * dt, pos, vel)
-        u = controller.step(Reference(pr[k], vr[k], ar[k], jr[k]), fb)
-        u = np.broadcast_to(u, (members,))
-        e = np.abs(pr[k] - pos)
+            pos = np.rint(pos * inv_res) * resolution
+            vel = np.rint(vel * inv_res) * resolution
+        u = controller.step(Reference(pr[k], vr[k], ar[k], jr[k]), Feedback(k * dt, pos, vel))
+        if np.ndim(u) == 0:
+            u = np.full(members, u)
+        np.subtract(pr[k], pos, out=e)
+        np.abs(e, out=e)
         np.maximum(max_err, e, out=max_err)
-        sq_err += e * e
+        e *= e
+        sq_err += e
         if k:
-            du = u - prev_u
-            sq_du += du * du
+            np.subtract(u, prev_u, out=e)
+            e *= e
+            sq_du += e
         prev_u = u
         applied = latched if transport_delay else u
-        s = s @ AT + np.outer(applied, b_u)
+        np.matmul(A, s, out=nxt)
+        nxt += b_u * applied
         if dist_a:
-            s += (dist_a * math.sin(dist_w * (k * dt + 0.5 * h))) * b_d
+            nxt += (dist_a * math.sin(dist_w * (k * dt + 0.5 * h))) * b_d[:, None]
+        s, nxt = nxt, s
         if transport_delay:
             latched = u
     finite = np.isfinite(max_err) & np.isfinite(sq_err)

@@ -13,7 +13,7 @@ longer than its time ends the run in quick stop, with the trace kept and the rea
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -111,8 +111,13 @@ def run_channels(
     duration: float | None = None,
     progress: bool = False,
     disable_at_end: bool = True,
+    on_start: Callable[[int], None] | None = None,
 ) -> RunResult:
-    """Run several axes in lockstep, one cycle each per step, and record a trace per axis."""
+    """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
+
+    ``on_start(cycles)`` is called once the axes are enabled, just before the first cycle (from then
+    on an interrupt ends in quick stop with the trace kept).
+    """
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -135,10 +140,14 @@ def run_channels(
 
     for ch in channels:
         ch.controller.reset()
-        ch.axis.enable()
-    bar = _progress(n, progress)
+    bar = None
     k = 0
     try:
+        for ch in channels:
+            ch.axis.enable()
+        if on_start is not None:
+            on_start(n)
+        bar = _progress(n, progress)
         for k in range(n):
             for i, ch in enumerate(channels):
                 fb = ch.axis.read()
@@ -166,7 +175,7 @@ def run_channels(
         k_done = k + 1
         _safe_stop(channels)
     except KeyboardInterrupt:
-        stop, detail = StopReason.INTERRUPTED, "interrupted by the user (SIGINT)"
+        stop, detail = StopReason.INTERRUPTED, "interrupted (KeyboardInterrupt: Ctrl-C or a signal)"
         _safe_stop(channels)
     except AxisError as exc:
         stop, detail = StopReason.AXIS_ERROR, str(exc)

@@ -130,7 +130,12 @@ def cmd_trace(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     _signals_seen.clear()
     try:
-        result = run_channels(channels, duration=args.duration, progress=not args.quiet and sys.stderr.isatty())
+        def started(cycles: int) -> None:
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on the simulated "
+                  "axis (Ctrl-C stops safely)", file=sys.stderr, flush=True)
+
+        result = run_channels(channels, duration=args.duration, on_start=started,
+                              progress=not args.quiet and sys.stderr.isatty())
     finally:
         signal.signal(signal.SIGTERM, previous)
     out = Path(args.out)
@@ -144,8 +149,10 @@ def cmd_trace(args: argparse.Namespace) -> int:
     for p in written:
         print(f"wrote {p}")
     if result.stop is StopReason.INTERRUPTED:
-        print(f"drivectl: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
-        return 143 if signal.SIGTERM in _signals_seen else 130
+        name = "SIGTERM" if signal.SIGTERM in _signals_seen else "SIGINT"
+        print(f"drivectl: interrupted by {name} after {result.cycles} cycles; axis quick-stopped and disabled, "
+              "trace kept", file=sys.stderr)
+        return 143 if name == "SIGTERM" else 130
     if not result.ok:
         print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
         return EXIT_STOPPED

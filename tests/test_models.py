@@ -198,3 +198,19 @@ def test_plant_spec_round_trips_through_toml(tmp_path):
     path.write_text(spec.to_toml("augmented by a test"))
     back = load_plant(path)
     assert back.params == spec.params and back.effects == spec.effects and back.model == "rigid"
+
+
+def test_seed_000_tracking_error_is_independent_of_substeps():
+    # the issue's accuracy criterion on paper 000's scenario: halving the substeps changes the
+    # max tracking error of PID-NFTSM by < 1 % (the linear part is exact, so it barely moves)
+    from drivectl.controllers.pid_nftsm import TdePidNftsm
+    from drivectl.controllers.servo import run
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.profiles.ptp import PointToPoint
+
+    profile = PointToPoint(0.0, 0.065, 0.1, 1.0, 40.0, hold_until=2.5)
+    errs = []
+    for sub in (2, 4):
+        axis = SimAxis(load_plant("two-mass").build(DT, substeps=sub), transport_delay=False, resolution=None)
+        errs.append(np.abs(run(axis, TdePidNftsm(DT), profile).trace.error).max())
+    assert abs(errs[0] - errs[1]) / errs[1] < 0.01

@@ -76,8 +76,12 @@ from drivectl.controllers.base import SCALAR_OPS, Controller, Settings, Settings
 from drivectl.driver.axis import Feedback
 from drivectl.profiles.base import Reference
 
-#: Table 2, X axis (rigid-x): kg, N s/m, N; Coulomb levels as magnitudes (the paper prints -47.9)
-TABLE2_X = {"mass": 88.08, "c_pos": 467.2, "c_neg": 530.6, "fc_pos": 45.5, "fc_neg": 47.9}
+
+def default_model() -> dict[str, float]:
+    """Table 2, X axis, as the built-in plant rigid-x holds it (one place for the numbers)."""
+    from drivectl.plant_emulator.models import load_plant
+
+    return dict(load_plant("rigid-x").params)
 MODEL_KEYS = ("mass", "c_pos", "c_neg", "fc_pos", "fc_neg")
 
 #: Table 3, per axis (only beta, delta, rho, Delta differ; gamma, eta, k_in, k_bar are equal)
@@ -156,7 +160,7 @@ def _gain_rate_array(law: int, s_mm: np.ndarray, rho: Any, delta: Any) -> np.nda
 def _model(model: Mapping[str, float] | None) -> dict[str, float]:
     """Validate the nominal model (mass, c_pos, c_neg, fc_pos, fc_neg as magnitudes)."""
     if model is None:
-        return dict(TABLE2_X)
+        return default_model()
     params = model if isinstance(model, Mapping) else getattr(model, "params", None)
     if not isinstance(params, Mapping):
         raise SettingsError(f"controller asmc: model: expected a mapping or a PlantSpec, got {model!r}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivectl.controllers.asmc import LAWS, TABLE2_X, Asmc, gain_rate
+from drivectl.controllers.asmc import LAWS, Asmc, default_model, gain_rate
 from drivectl.controllers.base import SettingsError
 from drivectl.controllers.dob import DisturbanceObserver
 from drivectl.controllers.pid import Pid, PidDob
@@ -134,7 +134,8 @@ def test_for_plant_picks_table3_column_and_model():
     assert (y.settings.beta, y.settings.delta, y.settings.rho, y.settings.Delta) == (5.0, 1.3, 4.0, 1.3)
     assert y.settings.law == 13 and y.model["mass"] == 97.9
     x = Asmc(DT)
-    assert x.model == TABLE2_X and x.settings.law == 14
+    table2_x = {"mass": 88.08, "c_pos": 467.2, "c_neg": 530.6, "fc_pos": 45.5, "fc_neg": 47.9}
+    assert x.model == default_model() == table2_x and x.settings.law == 14
 
 
 def test_array_gains_match_scalar_runs():
@@ -278,6 +279,6 @@ def test_bad_settings_name_the_field(cls, kwargs, field):
 
 def test_bad_model_names_the_key():
     with pytest.raises(SettingsError, match=r"model\.mass"):
-        Asmc(DT, model={**TABLE2_X, "mass": -1.0})
+        Asmc(DT, model={**default_model(), "mass": -1.0})
     with pytest.raises(SettingsError, match=r"model\.fc_neg"):
-        Asmc(DT, model={k: v for k, v in TABLE2_X.items() if k != "fc_neg"})
+        Asmc(DT, model={k: v for k, v in default_model().items() if k != "fc_neg"})

@@ -85,7 +85,7 @@ def seed000_profile() -> PointToPoint:
 def run_seed000(cls: type[Controller], profile: PointToPoint | None = None, **settings: Any) -> Outcome:
     """``cls`` with the paper's gains (overridden by ``settings``) on the seed-000 scenario."""
     plant = load_plant("two-mass").build(DT)
-    axis = SimAxis(plant, transport_delay=False, resolution=None)
+    axis = SimAxis(plant, transport_delay=False, resolution=None, enabled=True)  # the paper starts enabled at t = 0
     res = run(axis, cls(DT, **settings), profile or seed000_profile(), duration=DURATION)
     tr = res.trace
     err = tracking_error(tr.ref, tr.pos)

@@ -21,6 +21,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.driver.axis import Axis, AxisError
+from drivectl.driver.cia402 import PowerState
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits
 from drivectl.tools.trace import Trace, format_value
 
@@ -143,8 +144,7 @@ def run_channels(
     bar = None
     k = 0
     try:
-        for ch in channels:
-            ch.axis.enable()
+        _bring_up(channels)
         if on_start is not None:
             on_start(n)
         bar = _progress(n, progress)
@@ -186,6 +186,7 @@ def run_channels(
     if stop is StopReason.COMPLETED and disable_at_end:
         for ch in channels:
             ch.axis.disable()
+        _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
 
     traces = {}
     for i, ch in enumerate(channels):
@@ -252,14 +253,47 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
     return None
 
 
-def _safe_stop(channels: Sequence[Channel]) -> None:
-    """Quick stop, then disable, every axis; keep going if one of them fails."""
+#: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
+STATE_CHANGE_CYCLES = 20
+
+
+def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool]) -> bool:
+    """Run zero-effort cycles until every axis satisfies ``done`` (state changes happen at SYNC)."""
+    for _ in range(STATE_CHANGE_CYCLES):
+        if all(done(ch.axis) for ch in channels):
+            return True
+        for ch in channels:
+            ch.axis.read()
+            ch.axis.write(0.0)
+    return all(done(ch.axis) for ch in channels)
+
+
+def _bring_up(channels: Sequence[Channel]) -> None:
+    """Enable every axis through the cycle (zero effort, halt set) before the profile starts."""
     for ch in channels:
-        for action in (ch.axis.quick_stop, ch.axis.disable):
+        ch.axis.enable()
+    if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED):
+        late = [f"{ch.axis.name} ({ch.axis.power.value})" for ch in channels
+                if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {STATE_CHANGE_CYCLES} cycles")
+
+
+def _safe_stop(channels: Sequence[Channel]) -> None:
+    """Quick stop, then disable, every axis, cycling until the drives report it; keep going if one
+    of them fails (the others must still be stopped)."""
+    safe = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT)
+    for action, done in ((lambda ax: ax.quick_stop(), lambda ax: ax.power in safe),
+                         (lambda ax: ax.disable(), lambda ax: ax.power is not PowerState.OPERATION_ENABLED
+                          and ax.power is not PowerState.QUICK_STOP_ACTIVE)):
+        for ch in channels:
             try:
-                action()
+                action(ch.axis)
             except Exception:  # noqa: BLE001 - the other axes must still be stopped
                 pass
+        try:
+            _cycle_until(channels, done)
+        except Exception:  # noqa: BLE001 - a dead transport cannot be cycled; nothing more to do here
+            pass
 
 
 def _progress(n: int, enabled: bool):

@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from drivectl.driver.cia402 import PowerState
+
 
 @dataclass(slots=True, frozen=True)
 class Feedback:
@@ -29,12 +31,19 @@ class Axis(Protocol):
 
     ``read()`` returns the sample of the next cycle: the first call returns the sample at t = 0,
     every later call first lets the axis advance one cycle (SYNC) and then returns its sample.
-    ``write(effort)`` sets the effort computed from that sample.
+    ``write(effort)`` sets the effort computed from that sample. ``enable``, ``disable``,
+    ``quick_stop`` and ``fault_reset`` set the power state to reach; the drive gets there through the
+    following cycles (``power`` tells where it is), never by blocking.
     """
 
     name: str
     dt: float
     effort_unit: str
+
+    @property
+    def power(self) -> PowerState:
+        """The CiA 402 power state the drive last reported."""
+        ...
 
     def read(self) -> Feedback: ...
 

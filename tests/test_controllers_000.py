@@ -27,7 +27,7 @@ SETTINGS_DIR = Path(__file__).resolve().parent.parent / "controllers" / "setting
 
 def _axis() -> SimAxis:
     """The paper's simulation: two-mass plant, no transport delay, exact sensor."""
-    return SimAxis(load_plant("two-mass").build(DT), transport_delay=False, resolution=None)
+    return SimAxis(load_plant("two-mass").build(DT), transport_delay=False, resolution=None, enabled=True)
 
 
 def _seed000() -> PointToPoint:

@@ -211,6 +211,7 @@ def test_seed_000_tracking_error_is_independent_of_substeps():
     profile = PointToPoint(0.0, 0.065, 0.1, 1.0, 40.0, hold_until=2.5)
     errs = []
     for sub in (2, 4):
-        axis = SimAxis(load_plant("two-mass").build(DT, substeps=sub), transport_delay=False, resolution=None)
+        axis = SimAxis(load_plant("two-mass").build(DT, substeps=sub), transport_delay=False, resolution=None,
+                       enabled=True)
         errs.append(np.abs(run(axis, TdePidNftsm(DT), profile).trace.error).max())
     assert abs(errs[0] - errs[1]) / errs[1] < 0.01

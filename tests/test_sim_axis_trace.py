@@ -9,7 +9,7 @@ import pytest
 from helpers import PdController, SineProfile
 
 from drivectl.controllers.servo import LimitError, Limits, StopReason, run
-from drivectl.driver.axis import Axis
+from drivectl.driver.axis import Axis, AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
 from drivectl.plant_emulator.models import load_plant
@@ -58,24 +58,51 @@ def test_quantisation_to_encoder_counts():
     assert positions[-1] > 0
 
 
-def test_disabled_axis_applies_no_effort_and_quick_stop_zeroes_it():
+def test_power_states_are_reached_through_the_cycle_like_a_cia402_drive():
     axis = _axis(resolution=None)
     assert axis.power is PowerState.SWITCH_ON_DISABLED
     axis.read()
     axis.write(1000.0)
     for _ in range(10):
         axis.read()
-    assert axis.state.s == [0.0, 0.0]
-    axis.enable()
-    axis.write(1000.0)
-    for _ in range(10):
+    assert axis.state.s == [0.0, 0.0]  # disabled: no torque whatever is written
+    axis.enable()  # non-blocking: Shutdown, then Enable Operation, one SYNC each
+    states = []
+    for _ in range(3):
+        axis.write(1000.0)
         axis.read()
+        states.append(axis.power)
+    assert states == [PowerState.READY_TO_SWITCH_ON, PowerState.OPERATION_ENABLED, PowerState.OPERATION_ENABLED]
+    axis.write(1000.0)
+    axis.read()  # the setpoint written while enabled acts one cycle later
     assert axis.state.s[1] > 0
     axis.quick_stop()
+    axis.write(1000.0)  # ignored: quick stop zeroes the setpoint
+    axis.read()
     assert axis.power is PowerState.QUICK_STOP_ACTIVE
     v = axis.state.s[1]
     axis.read()
-    assert axis.state.s[1] < v  # friction decelerates; no more drive effort
+    assert axis.state.s[1] < v  # friction decelerates; no drive effort
+    assert axis.power is PowerState.SWITCH_ON_DISABLED  # quick stop option 2: then disabled
+
+
+def test_fault_and_reset_edge():
+    axis = _axis(resolution=None, enabled=True)
+    axis.read()
+    axis.drive.fault(0x7305)
+    assert axis.power is PowerState.FAULT_REACTION_ACTIVE
+    axis.read()
+    assert axis.power is PowerState.FAULT and axis.drive.error_code == 0x7305
+    with pytest.raises(AxisError, match="0x7305"):
+        axis.enable()
+    axis.fault_reset()  # a rising edge of controlword bit 7, then verified by the state
+    for _ in range(3):
+        axis.read()
+    assert axis.power is PowerState.SWITCH_ON_DISABLED and axis.drive.error_code == 0
+    axis.enable()
+    for _ in range(3):
+        axis.read()
+    assert axis.power is PowerState.OPERATION_ENABLED
 
 
 def test_force_noise_is_seeded():

@@ -1,0 +1,120 @@
+"""The drive itself: a CiA 402 power stage around a plant, stepped once per SYNC.
+
+SimAxis (no bus) and the emulated CANopen drive (node402.py) both hold one of these, so a trace
+through SimAxis equals the trace through the emulator by construction, not by parallel code.
+
+At each SYNC the drive (cyclic synchronous torque):
+
+1. steps the plant over the cycle that just ended with the effort latched at the previous SYNC
+   (the one-cycle transport delay; ``transport_delay=False`` applies the new setpoint at once,
+   as the papers simulate);
+2. takes the controlword and the setpoint received during that cycle: the controlword moves the
+   power state by the table of driver/cia402.py, the setpoint is latched if the drive is in
+   Operation Enabled without halt (zero torque in every other state);
+3. reports (the caller samples position, velocity and state).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+
+from drivectl.driver.cia402 import (
+    DRIVE_TRANSITIONS,
+    HALT_BIT,
+    Command,
+    PowerState,
+    decode_command,
+)
+from drivectl.plant_emulator.models import Plant, PlantState
+
+#: quick stop option codes (0x605A) after which the drive drops to Switch On Disabled by itself
+QUICK_STOP_TO_DISABLED = (0, 1, 2, 3, 4)
+
+
+class DriveModel:
+    """Power state, setpoint latching and the plant of one drive (simulated time only)."""
+
+    def __init__(
+        self,
+        plant: Plant,
+        *,
+        transport_delay: bool = True,
+        force_noise: float = 0.0,
+        seed: int = 0,
+        initial_position: float = 0.0,
+        quick_stop_option: int = 2,
+        power: PowerState = PowerState.SWITCH_ON_DISABLED,
+    ):
+        if not (force_noise >= 0 and math.isfinite(force_noise)):
+            raise ValueError(f"drive: force_noise: must be >= 0, got {force_noise!r}")
+        self.plant = plant
+        self.transport_delay = transport_delay
+        self.force_noise = float(force_noise)
+        self._rng = random.Random(seed)
+        self.state: PlantState = plant.initial_state(initial_position)
+        self.power = power
+        self.quick_stop_option = quick_stop_option
+        self.error_code = 0
+        self.applied = 0.0  # effort acting during the current cycle
+        self.syncs = 0
+        self._last_cw = 0
+
+    @property
+    def position(self) -> float:
+        return self.state.s[-2]
+
+    @property
+    def velocity(self) -> float:
+        return self.state.s[-1]
+
+    def sync(self, controlword: int, setpoint: float) -> None:
+        """One SYNC: advance the plant one cycle (except at the first SYNC), then take the
+        controlword and setpoint received since the previous SYNC."""
+        if not self.transport_delay:
+            self._take(controlword, setpoint)
+        if self.syncs:
+            effort = self.applied
+            if self.force_noise:
+                effort += self._rng.gauss(0.0, self.force_noise)
+            self.plant.step(self.state, effort)
+        self.syncs += 1
+        if self.transport_delay:
+            self._take(controlword, setpoint)
+
+    def _take(self, controlword: int, setpoint: float) -> None:
+        self._apply_controlword(controlword)
+        enabled = self.power is PowerState.OPERATION_ENABLED and not controlword & HALT_BIT
+        self.applied = setpoint if enabled else 0.0
+
+    def _apply_controlword(self, cw: int) -> None:
+        power = self.power
+        if cw == self._last_cw and power is PowerState.OPERATION_ENABLED:
+            return  # steady operation: the same command keeps the same state
+        rising_reset = bool(cw & Command.FAULT_RESET) and not self._last_cw & Command.FAULT_RESET
+        self._last_cw = cw
+        if power is PowerState.FAULT_REACTION_ACTIVE:
+            self.power = PowerState.FAULT  # the reaction (zero torque) takes one cycle
+            return
+        if power is PowerState.FAULT:
+            if rising_reset:
+                self.power = PowerState.SWITCH_ON_DISABLED
+                self.error_code = 0
+            return
+        if power is PowerState.NOT_READY_TO_SWITCH_ON:
+            self.power = PowerState.SWITCH_ON_DISABLED
+            return
+        if power is PowerState.QUICK_STOP_ACTIVE and self.quick_stop_option in QUICK_STOP_TO_DISABLED:
+            # torque mode: zero torque is reached at once, so the quick stop completes in one cycle
+            # and the drive drops to Switch On Disabled (transition 12) whatever the master sends
+            self.power = PowerState.SWITCH_ON_DISABLED
+            return
+        cmd = decode_command(cw)
+        if cmd is not None:
+            self.power = DRIVE_TRANSITIONS.get((power, cmd), power)
+
+    def fault(self, code: int) -> None:
+        """Enter Fault Reaction Active (zero torque now), Fault at the next SYNC; 0x603F = code."""
+        self.error_code = code
+        self.power = PowerState.FAULT_REACTION_ACTIVE
+        self.applied = 0.0

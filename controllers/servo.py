@@ -116,8 +116,8 @@ def run_channels(
 ) -> RunResult:
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
-    ``on_start(cycles)`` is called once the axes are enabled, just before the first cycle (from then
-    on an interrupt ends in quick stop with the trace kept).
+    ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
+    interrupt ends in quick stop with the trace kept at any time).
     """
     if not channels:
         raise ValueError("run: no axes given")
@@ -145,8 +145,6 @@ def run_channels(
     k = 0
     try:
         _bring_up(channels)
-        if on_start is not None:
-            on_start(n)
         bar = _progress(n, progress)
         for k in range(n):
             for i, ch in enumerate(channels):
@@ -169,6 +167,8 @@ def run_channels(
                     raise _Stop
                 ch.axis.write(u)
             k_done = k + 1
+            if k == 0 and on_start is not None:
+                on_start(n)
             if bar is not None and k % 250 == 0:
                 bar.update(min(250, n - bar.n))
     except _Stop:

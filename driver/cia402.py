@@ -196,7 +196,7 @@ MASTER_PATH: dict[tuple[PowerState, PowerState], Command | None] = {
     (S.READY_TO_SWITCH_ON, S.OPERATION_ENABLED): C.ENABLE_OPERATION,
     (S.SWITCHED_ON, S.OPERATION_ENABLED): C.ENABLE_OPERATION,
     (S.QUICK_STOP_ACTIVE, S.OPERATION_ENABLED): C.DISABLE_VOLTAGE,  # through Switch On Disabled
-    (S.FAULT, S.OPERATION_ENABLED): C.FAULT_RESET,
+    (S.FAULT, S.OPERATION_ENABLED): None,  # never reset a fault implicitly: see MasterStateMachine
     (S.NOT_READY_TO_SWITCH_ON, S.OPERATION_ENABLED): None,
     (S.FAULT_REACTION_ACTIVE, S.OPERATION_ENABLED): None,
     # disable
@@ -204,7 +204,7 @@ MASTER_PATH: dict[tuple[PowerState, PowerState], Command | None] = {
     (S.SWITCHED_ON, S.SWITCH_ON_DISABLED): C.DISABLE_VOLTAGE,
     (S.OPERATION_ENABLED, S.SWITCH_ON_DISABLED): C.DISABLE_VOLTAGE,
     (S.QUICK_STOP_ACTIVE, S.SWITCH_ON_DISABLED): C.DISABLE_VOLTAGE,
-    (S.FAULT, S.SWITCH_ON_DISABLED): C.FAULT_RESET,
+    (S.FAULT, S.SWITCH_ON_DISABLED): None,
     (S.NOT_READY_TO_SWITCH_ON, S.SWITCH_ON_DISABLED): None,
     (S.FAULT_REACTION_ACTIVE, S.SWITCH_ON_DISABLED): None,
     # quick stop (only from Operation Enabled; elsewhere the drive is not producing torque anyway)
@@ -258,9 +258,10 @@ _HOLD = {
 class MasterStateMachine:
     """Which controlword to send this cycle to bring a drive to ``target`` (non-blocking).
 
-    One call per cycle with the state decoded from the latest statusword. A fault reset is a rising
-    edge of bit 7: the machine sends bit 7 low, then high, then waits for the drive to leave Fault
-    (``reset_attempts`` counts the edges, so a caller can give up and report). The halt bit is set
+    One call per cycle with the state decoded from the latest statusword. A fault is never reset
+    implicitly: only after ``request_fault_reset()``, as a rising edge of bit 7 (bit 7 low, then
+    high), verified by the drive leaving Fault (``reset_attempts`` counts the edges, so a caller can
+    give up and report). The halt bit is set
     unless the drive is enabled and meant to be: a drive never moves on a stale setpoint while it
     is being switched on.
     """
@@ -268,14 +269,25 @@ class MasterStateMachine:
     def __init__(self, target: PowerState = PowerState.SWITCH_ON_DISABLED):
         self.target = target
         self.reset_attempts = 0
+        self.reset_requested = False
         self._last_cw = 0
         self._held: PowerState | None = None
+
+    def request_fault_reset(self) -> None:
+        """Reset a fault (edge on the next cycles), then stay in Switch On Disabled."""
+        self.reset_requested = True
+        self.target = PowerState.SWITCH_ON_DISABLED
 
     def controlword(self, state: PowerState) -> int:
         if state is self.target and state is not PowerState.FAULT and self._held is state:
             return self._last_cw  # steady state, the per-cycle fast path
         self._held = state if state is self.target else None
-        cmd = next_command(state, self.target)
+        if state is PowerState.FAULT and self.reset_requested:
+            cmd = Command.FAULT_RESET
+        else:
+            if state is not PowerState.FAULT:
+                self.reset_requested = False
+            cmd = next_command(state, self.target)
         if cmd is Command.FAULT_RESET:
             if self._last_cw & Command.FAULT_RESET:
                 cw = 0  # bit 7 back low: the next reset is a fresh edge

@@ -46,7 +46,9 @@ class EffortScale:
             raise ValueError(f"effort scale: rated effort must be > 0, got {self.rated!r}")
 
     def to_permille(self, effort: float) -> int:
-        return round(effort * 1000.0 / self.rated)
+        """Per mille of rated, clipped to what 0x6071 (INTEGER16) can carry."""
+        p = round(effort * 1000.0 / self.rated)
+        return -32767 if p < -32767 else 32767 if p > 32767 else p
 
     def from_permille(self, permille: int) -> float:
         return permille * self.rated / 1000.0

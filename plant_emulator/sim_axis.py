@@ -47,7 +47,8 @@ class SimAxis:
         self.drive = DriveModel(plant, transport_delay=transport_delay, force_noise=force_noise, seed=seed,
                                 initial_position=initial_position, power=power)
         self.master = MasterStateMachine(power)
-        self._controlword = self.master.controlword(power)
+        self._controlword = self.master.controlword(power)  # chosen from the last statusword
+        self._sent_controlword = self._controlword if enabled else 0  # what the last "RPDO" carried
         self._written = 0.0
 
     @property
@@ -63,7 +64,7 @@ class SimAxis:
         """One SYNC: the drive takes what was sent during the last cycle and the plant advances;
         then the encoder is sampled and the next controlword chosen."""
         d = self.drive
-        d.sync(self._controlword, self._written)
+        d.sync(self._sent_controlword, self._written)
         self._controlword = self.master.controlword(d.power)
         t = (d.syncs - 1) * self.dt
         enc = self.encoder
@@ -72,9 +73,11 @@ class SimAxis:
         return Feedback(t, enc.quantise(d.position), enc.quantise(d.velocity))
 
     def write(self, effort: float) -> None:
+        """The cycle's "RPDO": the effort and the controlword go to the drive together."""
         if self.effort_scale is not None:
             effort = self.effort_scale.from_permille(self.effort_scale.to_permille(effort))
         self._written = effort
+        self._sent_controlword = self._controlword
 
     # -- power state: targets reached through the cycle, like a CiA 402 drive ------------------
     def enable(self) -> None:
@@ -91,6 +94,7 @@ class SimAxis:
         self._written = 0.0
 
     def fault_reset(self) -> None:
+        self.master.request_fault_reset()
         self._target(PowerState.SWITCH_ON_DISABLED)
 
     def _target(self, target: PowerState) -> None:

@@ -95,12 +95,14 @@ def test_fault_and_reset_edge():
     assert axis.power is PowerState.FAULT and axis.drive.error_code == 0x7305
     with pytest.raises(AxisError, match="0x7305"):
         axis.enable()
-    axis.fault_reset()  # a rising edge of controlword bit 7, then verified by the state
+    axis.fault_reset()  # a rising edge of controlword bit 7 (sent with each cycle's setpoint)
     for _ in range(3):
+        axis.write(0.0)
         axis.read()
     assert axis.power is PowerState.SWITCH_ON_DISABLED and axis.drive.error_code == 0
     axis.enable()
     for _ in range(3):
+        axis.write(0.0)
         axis.read()
     assert axis.power is PowerState.OPERATION_ENABLED
 

@@ -42,10 +42,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     t = sub.add_parser("trace", help="run an axis through its profile and record a trace + plot",
-                       description="Run the axis's profile under its controller on the simulated axis "
-                       "(the plant of the configuration, with the CANopen one-cycle transport delay and "
-                       "76.29 nm encoder quantisation), write the trace (format v1) and a PNG, and print "
-                       "a summary.")
+                       description="Run the axis's profile under its controller on the configured bus "
+                       "(default: emulated CiA 402 drives on the in-process virtual CAN bus, cyclic "
+                       "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
+                       "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
     t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
@@ -58,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, help="seed of the force noise")
     t.add_argument("--out", default="traces", metavar="DIR", help="folder for AXIS.csv and the PNG (default traces)")
     t.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    t.add_argument("--sim", action="store_true",
+                   help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
@@ -74,6 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
+    from drivectl.driver.axis import AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
@@ -90,6 +93,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except bad_input as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except NotImplementedError as exc:
+        print(f"drivectl: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except AxisError as exc:  # the bus or a drive refused (boot, identity, SDO abort)
+        print(f"drivectl: {exc}", file=sys.stderr)
+        return EXIT_STOPPED
     return EXIT_BAD_INPUT
 
 
@@ -98,46 +107,47 @@ def cmd_trace(args: argparse.Namespace) -> int:
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, run_channels
     from drivectl.plant_emulator.effects import parse_effect
-    from drivectl.plant_emulator.models import load_plant
-    from drivectl.plant_emulator.sim_axis import SimAxis
     from drivectl.profiles.library import load_profile
     from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
     cfg = load_config(args.config)
     names = [a.strip() for a in args.axis.split(",") if a.strip()]
     effects = [parse_effect(text) for text in args.effect]
+    profiles = {name: load_profile(args.profile or cfg.axis(name).profile, axis=name) for name in names}
+    specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    controllers = {}
+    for name in names:
+        ac = cfg.axis(name)
+        ctrl_name = args.controller or ac.controller
+        settings = ac.controller_settings if ctrl_name == ac.controller else {}
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+                                            source=f"{cfg.source}: axes.{name}.controller_settings")
+    machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
+                           seed=args.seed, start={n: p.start_position for n, p in profiles.items()})
     channels = []
     for name in names:
         ac = cfg.axis(name)
-        spec = load_plant(args.plant or ac.plant)
-        for ename, eparams in effects:
-            spec = spec.with_effect(ename, **eparams)
-        profile = load_profile(args.profile or ac.profile, axis=name)
-        ctrl_name = args.controller or ac.controller
-        settings = ac.controller_settings if ctrl_name == ac.controller else {}
-        controller = make_controller(ctrl_name, cfg.cycle_s, settings, plant=spec, axis=name,
-                                     source=f"{cfg.source}: axes.{name}.controller_settings")
-        axis = SimAxis(spec.build(cfg.cycle_s), name=name, resolution=ac.encoder_m_per_count,
-                       force_noise=args.noise, seed=args.seed, initial_position=profile.start_position)
-        meta = {"plant": spec.name, "profile": args.profile or ac.profile, "bus": "sim (SimAxis)",
+        meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
                 "config": cfg.source}
         if effects:
             meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
-        channels.append(Channel(axis, controller, profile, ac.limits, meta))
+        channels.append(Channel(machine.axes[name], controllers[name], profiles[name], ac.limits, meta))
 
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     _signals_seen.clear()
     try:
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on the simulated "
-                  "axis (Ctrl-C stops safely)", file=sys.stderr, flush=True)
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
+                  "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         result = run_channels(channels, duration=args.duration, on_start=started,
                               progress=not args.quiet and sys.stderr.isatty())
     finally:
         signal.signal(signal.SIGTERM, previous)
+        machine.close()
     out = Path(args.out)
     written = []
     for name, tr in result.traces.items():

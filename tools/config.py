@@ -22,7 +22,14 @@ DEFAULT_CONFIG_TOML = """\
 # drivectl machine configuration (embedded default: emulated drives, no hardware)
 cycle_s = 0.001                 # servo cycle = SYNC period
 
+[bus]
+interface = "virtual"           # python-can interface: virtual | slcan | socketcand | socketcan
+channel = "drivectl"            # virtual: any name (made unique per run); slcan: the tty; socketcan: can0
+bitrate = 1000000
+
 [axes.x]
+node_id = 1
+rated_effort = 100.0         # N per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.1 N
 plant = "rigid-x"               # built-in plant name or a plant TOML file
 controller = "asmc"             # smc | vprl | pid-nftsm | asmc | pid | pid-dob
 profile = "circle"              # built-in profile name or a profile TOML file
@@ -36,6 +43,8 @@ following_error_m = 0.001       # window
 following_time_s = 0.01
 
 [axes.y]
+node_id = 2
+rated_effort = 100.0         # N per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.1 N
 plant = "rigid-y"
 controller = "asmc"
 profile = "circle"
@@ -49,6 +58,8 @@ following_error_m = 0.001
 following_time_s = 0.01
 
 [axes.z]
+node_id = 3
+rated_effort = 1.0           # V per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.001 V
 plant = "two-mass"
 controller = "pid-nftsm"
 profile = "seed-000"
@@ -61,10 +72,20 @@ m_tilde = 0.15
 accel_filter_hz = 150.0
 [axes.z.limits]
 position_m = [-0.01, 0.1]
-max_effort = 50.0               # V
+max_effort = 30.0               # V
 following_error_m = 0.001
 following_time_s = 0.01
 """
+
+
+DEFAULT_EDS = str(Path(__file__).resolve().parent.parent / "driver" / "eds" / "drivectl-emulated-drive.eds")
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    interface: str = "virtual"
+    channel: str = "drivectl"
+    bitrate: int = 1_000_000
 
 
 class ConfigError(ValueError):
@@ -80,6 +101,9 @@ class AxisConfig:
     controller_settings: dict[str, Any] = field(default_factory=dict)
     encoder_m_per_count: float = DEFAULT_RESOLUTION_M
     limits: Limits = field(default_factory=Limits)
+    node_id: int = 1
+    rated_effort: float = 100.0
+    eds: str = DEFAULT_EDS
 
 
 @dataclass(frozen=True)
@@ -87,6 +111,7 @@ class MachineConfig:
     source: str
     cycle_s: float
     axes: dict[str, AxisConfig]
+    bus: BusConfig = field(default_factory=BusConfig)
 
     def axis(self, name: str) -> AxisConfig:
         if name not in self.axes:
@@ -126,9 +151,24 @@ def _string(src: str, key: str, value: Any) -> str:
 
 
 def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
-    unknown = set(data) - {"cycle_s", "axes"}
+    unknown = set(data) - {"cycle_s", "axes", "bus"}
     if unknown:
-        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, axes)")
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes)")
+    bus_raw = data.get("bus", {})
+    if not isinstance(bus_raw, dict):
+        raise ConfigError(f"{src}: bus: expected a table")
+    extra = set(bus_raw) - {"interface", "channel", "bitrate"}
+    if extra:
+        raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
+    from drivectl.driver.network import INTERFACES
+
+    interface = bus_raw.get("interface", "virtual")
+    if interface not in INTERFACES:
+        raise ConfigError(f"{src}: bus.interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
+    bitrate = bus_raw.get("bitrate", 1_000_000)
+    if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
+        raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
+    bus = BusConfig(interface, _string(src, "bus.channel", bus_raw.get("channel", "drivectl")), bitrate)
     cycle = _number(src, "cycle_s", data.get("cycle_s", 0.001), positive=True)
     axes_raw = data.get("axes")
     if not isinstance(axes_raw, dict) or not axes_raw:
@@ -138,7 +178,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         k = f"axes.{name}"
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
-        allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits"}
+        allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
+                   "node_id", "rated_effort", "eds"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -183,5 +224,17 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
                 src, f"{k}.encoder_m_per_count", raw.get("encoder_m_per_count", DEFAULT_RESOLUTION_M), positive=True
             ),
             limits=limits,
+            node_id=_node_id(src, f"{k}.node_id", raw.get("node_id", len(axes) + 1)),
+            rated_effort=_number(src, f"{k}.rated_effort", raw.get("rated_effort", 100.0), positive=True),
+            eds=_string(src, f"{k}.eds", raw.get("eds", DEFAULT_EDS)),
         )
-    return MachineConfig(src, cycle, axes)
+    ids = [a.node_id for a in axes.values()]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"{src}: axes: two axes share a node_id ({sorted(ids)})")
+    return MachineConfig(src, cycle, axes, bus)
+
+
+def _node_id(src: str, key: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 127:
+        raise ConfigError(f"{src}: {key}: expected an integer node id 1..127, got {value!r}")
+    return value

@@ -1,0 +1,306 @@
+"""CanopenAxis: the Axis protocol over a CiA 402 drive in cyclic synchronous torque mode.
+
+Boot (NMT reset, boot-up awaited), identity 0x1018 checked against the configuration, configuration by
+SDO (mode 10 = CST, PDO mapping through canopen's PdoMap, SYNC period, heartbeat), then once per cycle:
+SYNC -> TPDOs in (statusword, position, velocity, torque) -> the controller -> RPDO out (controlword,
+target torque in per mille of the rated effort). The CiA 402 state machine is stepped inside the
+cycle from the tables of driver/cia402.py (never canopen's blocking BaseNode402 setters): enabling
+takes two cycles, a fault reset is a rising edge of bit 7 verified by the next statusword.
+
+Several axes on one bus share one :class:`SyncClock`: the first axis to read in a new cycle sends
+the SYNC, the others read what it brought.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import canopen
+
+from drivectl.driver import cia402
+from drivectl.driver.axis import AxisError, Feedback
+from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_COB_ID, RPDO_BASE, SYNC_COB_ID, TPDO_BASE, NmtCommand
+from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.network import LockstepNetwork
+from drivectl.driver.pdo import PdoLayout
+from drivectl.driver.units import EffortScale, Encoder
+
+#: the mapping drivectl configures: RPDO1 controlword + target torque; TPDO1 statusword + position;
+#: TPDO2 velocity + torque actual (48 bits each, synchronous, transmission type 1)
+RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
+TPDO_ENTRIES = (
+    ((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),
+    ((cia402.VELOCITY_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),
+)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """What 0x1018 must say (None: not checked)."""
+
+    vendor_id: int | None = None
+    product_code: int | None = None
+
+
+class SyncClock:
+    """The SYNC producer of one bus, shared by its axes."""
+
+    def __init__(self, network: canopen.Network, cob_id: int = SYNC_COB_ID):
+        self.network = network
+        self.cob_id = cob_id
+        self.cycle = 0
+
+    def tick(self) -> None:
+        self.network.send_message(self.cob_id, b"")
+        self.cycle += 1
+
+
+class CanopenAxis:
+    """One CiA 402 drive behind the Axis protocol."""
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        node_id: int,
+        *,
+        name: str,
+        dt: float,
+        effort_unit: str,
+        eds: str | Path,
+        encoder: Encoder,
+        effort_scale: EffortScale,
+        clock: SyncClock | None = None,
+        identity: Identity | None = None,
+        heartbeat_ms: int = 100,
+        timeout: float = 2.0,
+        max_lost_cycles: int = 3,
+    ):
+        self.name = name
+        self.dt = dt
+        self.effort_unit = effort_unit
+        self.node_id = node_id
+        self.network = network
+        self.encoder = encoder
+        self.scale = effort_scale
+        self.clock = clock or SyncClock(network)
+        self.timeout = timeout
+        self.heartbeat_ms = heartbeat_ms
+        self.max_lost_cycles = max_lost_cycles
+        self.lockstep = isinstance(network, LockstepNetwork)
+        try:
+            od = canopen.import_od(str(eds), node_id)
+        except Exception as exc:  # canopen raises many types for a bad file
+            raise AxisError(f"axis {name}: EDS {eds}: cannot be read: {exc}") from None
+        missing = [f"0x{i:04X}" for i in cia402.REQUIRED_OBJECTS if i not in od]
+        if missing:
+            raise AxisError(f"axis {name}: EDS {eds}: missing required object(s) {', '.join(missing)}")
+        self.od = od
+        self.identity = identity if identity is not None else Identity(
+            od.device_information.vendor_number, od.device_information.product_number)
+        self.node = canopen.RemoteNode(node_id, od)
+        network.add_node(self.node)
+        self.master = MasterStateMachine(PowerState.SWITCH_ON_DISABLED)
+        self.power = PowerState.NOT_READY_TO_SWITCH_ON
+        self.statusword = 0
+        self.error_code = 0
+        self.lost_cycles = 0
+        self.lost_total = 0
+        self._cycle = self.clock.cycle
+        self._controlword = 0
+        self._rpdo_cob = RPDO_BASE[0] + node_id
+        self._rpdo = PdoLayout.from_entries(od, RPDO_ENTRIES)
+        self._tpdo = [PdoLayout.from_entries(od, e) for e in TPDO_ENTRIES]
+        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(TPDO_ENTRIES))]
+        self._fresh = [False] * len(TPDO_ENTRIES)
+        self._raw = [(0, 0), (0, 0)]
+        self._arrived = threading.Event()
+        self._booted = threading.Event()
+        self._connected = False
+
+    # -- boot and configuration (before the cycle runs) ------------------------------------------
+    def connect(self) -> None:
+        """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
+        self._boot()
+        self._check_identity()
+        self._configure()
+        for i, cob in enumerate(self._tpdo_cob):
+            self.network.subscribe(cob, self._tpdo_callback(i))
+        # the state before the first SYNC, so that the first cycle already sends the right command
+        self.statusword = self._sdo(cia402.STATUSWORD)
+        self.power = cia402.decode_statusword(self.statusword)
+        self._controlword = self.master.controlword(self.power)
+        self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
+        self._connected = True
+
+    def _wait(self, event: threading.Event, what: str) -> None:
+        # in lockstep the reply was delivered during the send; otherwise wait for the notifier
+        if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
+            raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
+
+    def _boot(self) -> None:
+        self._booted.clear()
+
+        def on_heartbeat(can_id: int, data: bytes, timestamp: float) -> None:
+            if data[:1] == b"\x00":
+                self._booted.set()
+
+        cob = HEARTBEAT_BASE + self.node_id
+        self.network.subscribe(cob, on_heartbeat)
+        try:
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, self.node_id]))
+            self._wait(self._booted, "boot-up message after NMT reset (is the drive powered, the node id right?)")
+        finally:
+            self.network.unsubscribe(cob, on_heartbeat)
+
+    def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
+        what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
+        try:
+            var = self.node.sdo[index] if sub is None else self.node.sdo[index][sub]
+            if value is None:
+                return var.raw
+            var.raw = value
+            return value
+        except canopen.SdoAbortedError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None
+        except canopen.SdoCommunicationError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}") from None
+        except KeyError:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
+
+    def _check_identity(self) -> None:
+        vendor = self._sdo(cia402.IDENTITY, 1)
+        product = self._sdo(cia402.IDENTITY, 2)
+        want = self.identity
+        if (want.vendor_id is not None and vendor != want.vendor_id) or (
+            want.product_code is not None and product != want.product_code
+        ):
+            raise AxisError(
+                f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
+                f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
+            )
+
+    def _configure(self) -> None:
+        supported = self._sdo(cia402.SUPPORTED_DRIVE_MODES)
+        if not supported & cia402.supported_mode_bit(cia402.Mode.CYCLIC_SYNC_TORQUE):
+            raise AxisError(f"axis {self.name}: node {self.node_id}: drive does not support cyclic synchronous "
+                            f"torque (0x6502 = 0x{supported:08X})")
+        self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
+        self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
+        self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
+        try:
+            self._map_pdos()
+        except canopen.SdoAbortedError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
+        mode = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
+        if mode != cia402.Mode.CYCLIC_SYNC_TORQUE:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, expected 10 (CST)")
+
+    def _map_pdos(self) -> None:
+        """RPDO1 and TPDO1/2 as drivectl needs them, every other PDO off (canopen's PdoMap writes)."""
+        node = self.node
+        node.rpdo.read()
+        node.tpdo.read()
+        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE), (node.tpdo, TPDO_ENTRIES, TPDO_BASE)):
+            for n, pdo in maps.map.items():
+                pdo.clear()
+                if n <= len(wanted):
+                    for index, sub in wanted[n - 1]:
+                        pdo.add_variable(index, sub)
+                    pdo.cob_id = base[n - 1] + self.node_id
+                    pdo.trans_type = 1  # synchronous, every SYNC
+                    pdo.enabled = True
+                else:
+                    pdo.enabled = False
+                pdo.save()
+
+    def read_back_mapping(self) -> dict[str, list[int]]:
+        """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
+        out = {}
+        for name, base, n in (("rpdo", cia402.RPDO_MAP, 1), ("tpdo", cia402.TPDO_MAP, 2)):
+            for i in range(n):
+                count = self._sdo(base + i, 0)
+                out[f"{name}{i + 1}"] = [self._sdo(base + i, s + 1) for s in range(count)]
+        return out
+
+    # -- the cycle ---------------------------------------------------------------------------------
+    def _tpdo_callback(self, i: int):
+        codec = self._tpdo[i].codec
+        fresh = self._fresh
+        raw = self._raw
+
+        def on_tpdo(can_id: int, data: bytes, timestamp: float) -> None:
+            raw[i] = codec.unpack_from(data)
+            fresh[i] = True
+            if all(fresh):
+                self._arrived.set()
+
+        return on_tpdo
+
+    def read(self) -> Feedback:
+        """Next cycle: SYNC (unless another axis of this bus sent it), then this drive's TPDOs."""
+        if not self._connected:
+            raise AxisError(f"axis {self.name}: not connected")
+        if self._cycle == self.clock.cycle:
+            self._fresh[:] = [False] * len(self._fresh)
+            self._arrived.clear()
+            self.clock.tick()
+        self._cycle = self.clock.cycle
+        if not all(self._fresh) and not self.lockstep:
+            self._arrived.wait(self.timeout)
+        if all(self._fresh):
+            self.lost_cycles = 0
+        else:
+            # hold the last sample once; more than max_lost_cycles in a row is a fault
+            self.lost_cycles += 1
+            self.lost_total += 1
+            if self.lost_cycles > self.max_lost_cycles:
+                raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles")
+        for i in range(len(self._fresh)):
+            self._fresh[i] = False
+        (sw, counts), (vel_counts, _torque) = self._raw
+        self.statusword = sw
+        self.power = cia402.decode_statusword(sw)
+        self._controlword = self.master.controlword(self.power)
+        enc = self.encoder
+        return Feedback((self._cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
+
+    def write(self, effort: float) -> None:
+        self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
+                                                                           self.scale.to_permille(effort)))
+
+    # -- power state targets (reached through the following cycles) ----------------------------------
+    def enable(self) -> None:
+        if self.power is PowerState.FAULT:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: in Fault "
+                            f"({cia402.error_text(self.read_error_code())}), fault-reset first")
+        self._target(PowerState.OPERATION_ENABLED)
+
+    def disable(self) -> None:
+        self._target(PowerState.SWITCH_ON_DISABLED)
+
+    def quick_stop(self) -> None:
+        self._target(PowerState.QUICK_STOP_ACTIVE)
+
+    def fault_reset(self) -> None:
+        self.master.request_fault_reset()
+        self._target(PowerState.SWITCH_ON_DISABLED)
+
+    def _target(self, target: PowerState) -> None:
+        self.master.target = target
+        self._controlword = self.master.controlword(self.power)
+
+    def read_error_code(self) -> int:
+        self.error_code = self._sdo(cia402.ERROR_CODE)
+        return self.error_code
+
+    def close(self) -> None:
+        for cob in self._tpdo_cob:
+            self.network.unsubscribe(cob)
+        if self._connected:
+            try:
+                self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+            except Exception:  # noqa: BLE001 - the bus may already be gone
+                pass
+        self._connected = False

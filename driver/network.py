@@ -1,0 +1,104 @@
+"""CAN buses and canopen networks: opened by python-can's own interface names, pumped in lockstep.
+
+``virtual`` (python-can's in-process bus) runs in lockstep: every frame a network sends is
+delivered, on the sending thread, to every network of the same :class:`Lockstep` until the bus is
+quiet; a reply (an SDO response, the TPDOs answering a SYNC) is therefore already received when the
+send returns. No notifier thread, so the order of frames never depends on timing and the same run
+gives the same trace bit for bit. Other interfaces (slcan, socketcand, socketcan) cross a process
+boundary: their networks are driven by a python-can Notifier as usual.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from typing import Any
+
+import can
+import canopen
+
+#: python-can interfaces the drivers know how to open
+INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
+
+_channel_counter = itertools.count()
+
+
+def unique_virtual_channel(prefix: str = "drivectl") -> str:
+    """A channel name no other bus of this process uses (virtual channels are process-global)."""
+    return f"{prefix}-{os.getpid()}-{next(_channel_counter)}"
+
+
+def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs: Any) -> can.BusABC:
+    """A python-can bus by interface name, with the settings each needs here."""
+    if interface not in INTERFACES:
+        raise ValueError(f"bus: interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
+    if interface == "slcan":
+        kwargs.setdefault("sleep_after_open", 0)  # else each open costs 2 s
+    if bitrate is not None and interface != "virtual":
+        kwargs["bitrate"] = bitrate
+    if interface == "virtual":
+        kwargs.setdefault("receive_own_messages", False)
+    return can.Bus(interface=interface, channel=channel, **kwargs)
+
+
+class Lockstep:
+    """Networks in one process that deliver each other's frames on the sending thread."""
+
+    def __init__(self) -> None:
+        self.networks: list[LockstepNetwork] = []
+        self._settling = False
+
+    def settle(self) -> None:
+        """Deliver every pending frame to its network until all buses are quiet."""
+        if self._settling:
+            return  # a callback sent a frame: the outer settle delivers it
+        self._settling = True
+        try:
+            busy = True
+            while busy:
+                busy = False
+                for net in self.networks:
+                    if net.pump():
+                        busy = True
+        finally:
+            self._settling = False
+
+
+class LockstepNetwork(canopen.Network):
+    """A canopen Network without a notifier thread: frames are pumped by :class:`Lockstep`."""
+
+    def __init__(self, bus: can.BusABC, lockstep: Lockstep):
+        super().__init__(bus)
+        self.lockstep = lockstep
+        lockstep.networks.append(self)
+        self._recv = bus.recv
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        super().send_message(can_id, data, remote)
+        self.lockstep.settle()
+
+    def pump(self) -> bool:
+        """Deliver the frames waiting on this network's bus; True if there were any."""
+        got = False
+        recv = self._recv
+        notify = self.notify
+        while (msg := recv(0)) is not None:
+            got = True
+            if not msg.is_error_frame:
+                notify(msg.arbitration_id, msg.data, msg.timestamp)
+        return got
+
+    def disconnect(self) -> None:
+        if self in self.lockstep.networks:
+            self.lockstep.networks.remove(self)
+        if self.bus is not None:
+            self.bus.shutdown()
+        self.bus = None
+
+
+def threaded_network(bus: can.BusABC) -> canopen.Network:
+    """A canopen Network driven by a python-can Notifier (for buses that cross processes)."""
+    net = canopen.Network(bus)
+    net.NOTIFIER_CYCLE = 0.05  # teardown waits up to one cycle; canopen's default is 1 s
+    net.notifier = can.Notifier(bus, net.listeners, net.NOTIFIER_CYCLE)
+    return net

@@ -1,0 +1,248 @@
+"""The emulated drive: a CiA 402 slave on a CAN bus, stepping its plant once per SYNC.
+
+Built on canopen's LocalNode (object dictionary from the EDS, SDO server) and adding what that
+toolbox lacks (see ../shared/DESIGN.md, "Known traps"):
+
+* NMT done here: boot-up message (0x700 + id, [00]) at start and after every reset, NMT state
+  respected (PDOs only in Operational), heartbeat produced in simulated time (every 0x1017 ms of
+  SYNCs, not by a timer thread, so the frame order stays deterministic);
+* the PDO mapping read back from the object dictionary whenever the master remaps by SDO;
+* RPDO data written into the object dictionary (an SDO upload of 0x6040/0x6071 shows them);
+* on each SYNC: the drive (plant_emulator/drive.py, shared with SimAxis) steps the plant one cycle
+  with the setpoint latched at the previous SYNC, takes the controlword and setpoint received since,
+  and the TPDOs go out (position actual in counts, statusword, velocity and torque actual).
+
+Time is simulated: the plant advances exactly one cycle per SYNC, never by wall clock.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import canopen
+
+from drivectl.driver import cia402
+from drivectl.driver.cia301 import (
+    HEARTBEAT_BASE,
+    NMT_COB_ID,
+    NMT_TRANSITIONS,
+    SYNC_COB_ID,
+    NmtCommand,
+    NmtState,
+)
+from drivectl.driver.pdo import PdoLayout
+from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
+from drivectl.plant_emulator.drive import DriveModel
+from drivectl.plant_emulator.models import Plant
+
+EMULATED_DRIVE_EDS = Path(__file__).resolve().parent.parent / "driver" / "eds" / "drivectl-emulated-drive.eds"
+
+
+class EmulatedDrive:
+    """One CiA 402 drive (one node) on ``network``; several may share a network and its SYNC."""
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        node_id: int,
+        plant: Plant,
+        *,
+        rated_effort: float,
+        eds: str | Path = EMULATED_DRIVE_EDS,
+        resolution: float = DEFAULT_RESOLUTION_M,
+        force_noise: float = 0.0,
+        seed: int = 0,
+        initial_position: float = 0.0,
+    ):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"emulated drive: node id must be 1..127, got {node_id}")
+        self.network = network
+        self.node_id = node_id
+        self.od = canopen.import_od(str(eds), node_id)
+        self.node = canopen.LocalNode(node_id, self.od)
+        network.add_node(self.node)
+        # canopen's NmtSlave runs heartbeats on a timer thread and stays INITIALISING after a reset:
+        # replace it by the simulated-time NMT below
+        network.unsubscribe(NMT_COB_ID, self.node.nmt.on_command)
+        self.node._write_callbacks.remove(self.node.nmt.on_write)
+        network.subscribe(NMT_COB_ID, self._on_nmt)
+        self.node.add_write_callback(self._on_write)
+        self.node.add_read_callback(self._on_read)
+
+        self.encoder = Encoder(resolution)
+        self.scale = EffortScale(rated_effort)
+        self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
+                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION))
+        self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(rated_effort * 1000))
+        self.nmt = NmtState.INITIALISING
+        self.controlword = 0
+        self.setpoint = 0  # per mille of the rated effort, as received
+        self.mode = 0
+        self._sync_cob = SYNC_COB_ID
+        self._heartbeat_cycles = 0
+        self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
+        self._rpdos: list[tuple[int, PdoLayout, tuple[tuple[int, int, int], ...]]] = []
+        self._tpdos: list[tuple[int, PdoLayout]] = []
+        self._mapping_dirty = True
+        network.subscribe(self._sync_cob, self._on_sync)
+
+    # -- object dictionary helpers -----------------------------------------------------------------
+    def _od_default(self, index: int, sub: int = 0) -> int:
+        obj = self.od[index]
+        if not isinstance(obj, canopen.objectdictionary.ODVariable):
+            obj = obj[sub]
+        return obj.default
+
+    def _value(self, index: int, sub: int = 0) -> int:
+        return self.node.sdo[index][sub].raw if sub or not isinstance(
+            self.od[index], canopen.objectdictionary.ODVariable) else self.node.sdo[index].raw
+
+    # -- NMT -----------------------------------------------------------------------------------------
+    def boot(self) -> None:
+        """Power on: boot-up message, then Pre-operational."""
+        self.nmt = NmtState.INITIALISING
+        self.network.send_message(HEARTBEAT_BASE + self.node_id, bytes([NmtState.INITIALISING]))
+        self.nmt = NmtState.PRE_OPERATIONAL
+
+    def _on_nmt(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if len(data) < 2:
+            return
+        cmd, target = data[0], data[1]
+        if target not in (0, self.node_id):
+            return
+        if cmd in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
+            if cmd == NmtCommand.RESET_NODE:
+                self.node.data_store.clear()  # application parameters back to the EDS defaults
+                self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack(
+                    "<I", round(self.scale.rated * 1000))
+                self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
+            self._mapping_dirty = True
+            self.boot()
+        elif cmd in NMT_TRANSITIONS:
+            self.nmt = NMT_TRANSITIONS[NmtCommand(cmd)]
+            if self.nmt is NmtState.OPERATIONAL:
+                self._load_mapping()
+
+    # -- SDO hooks -----------------------------------------------------------------------------------
+    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+        if 0x1400 <= index <= 0x1BFF:
+            self._mapping_dirty = True  # LocalNode stores the value after this callback
+        elif index == cia402.CONTROLWORD:
+            self.controlword = struct.unpack("<H", data)[0]
+        elif index == cia402.TARGET_TORQUE:
+            self.setpoint = struct.unpack("<h", data)[0]
+        elif index == cia402.MODES_OF_OPERATION:
+            mode = struct.unpack("<b", data)[0]
+            supported = self._od_default(cia402.SUPPORTED_DRIVE_MODES)
+            if mode <= 0 or not supported & cia402.supported_mode_bit(cia402.Mode(mode)):
+                raise canopen.SdoAbortedError(0x06090030)  # value range of parameter exceeded
+            self.mode = mode
+        elif index == cia402.QUICK_STOP_OPTION:
+            self.drive.quick_stop_option = struct.unpack("<h", data)[0]
+        elif index == cia402.PRODUCER_HEARTBEAT_TIME:
+            self._heartbeat_ms = struct.unpack("<H", data)[0]
+            self._heartbeat_cycles = 0  # restart the count with the new period
+
+    def _on_read(self, index: int, subindex: int, od):
+        d = self.drive
+        if index == cia402.STATUSWORD:
+            return self.statusword()
+        if index == cia402.POSITION_ACTUAL:
+            return self.encoder.to_counts(d.position)
+        if index == cia402.VELOCITY_ACTUAL:
+            return self.encoder.to_counts(d.velocity)
+        if index == cia402.TORQUE_ACTUAL:
+            return self.scale.to_permille(d.applied)
+        if index == cia402.ERROR_CODE:
+            return d.error_code
+        if index == cia402.MODES_OF_OPERATION_DISPLAY:
+            return self.mode
+        return None
+
+    def statusword(self) -> int:
+        power = self.drive.power
+        return cia402.encode_statusword(power, follows=power is cia402.PowerState.OPERATION_ENABLED)
+
+    # -- PDOs ----------------------------------------------------------------------------------------
+    def _load_mapping(self) -> None:
+        """Read the PDO mapping the master wrote (LocalNode keeps it in its data store)."""
+        for cob, _layout, _slots in self._rpdos:
+            self.network.unsubscribe(cob, self._on_rpdo)
+        self._rpdos, self._tpdos = [], []
+        for n in range(4):
+            comm, mapping = cia402.RPDO_COMM + n, cia402.RPDO_MAP + n
+            if comm not in self.od:
+                continue
+            cob = self._value(comm, 1)
+            count = self._value(mapping, 0)
+            if cob & 0x80000000 or count == 0:
+                continue
+            layout = PdoLayout.from_mapping_words(self.od, [self._value(mapping, i + 1) for i in range(count)])
+            offsets, offset = [], 0
+            for (index, sub), code in zip(layout.entries, layout.codec.format[1:], strict=True):
+                size = struct.calcsize("<" + code)
+                offsets.append((index, sub, offset, size))
+                offset += size
+            self._rpdos.append((cob & 0x7FF, layout, tuple(offsets)))
+            self.network.subscribe(cob & 0x7FF, self._on_rpdo)
+        for n in range(4):
+            comm, mapping = cia402.TPDO_COMM + n, cia402.TPDO_MAP + n
+            if comm not in self.od:
+                continue
+            cob = self._value(comm, 1)
+            count = self._value(mapping, 0)
+            if cob & 0x80000000 or count == 0:
+                continue
+            layout = PdoLayout.from_mapping_words(self.od, [self._value(mapping, i + 1) for i in range(count)])
+            self._tpdos.append((cob & 0x7FF, layout))
+        self._mapping_dirty = False
+
+    def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self.nmt is not NmtState.OPERATIONAL:
+            return
+        store = self.node.data_store
+        for cob, layout, slots in self._rpdos:
+            if cob != can_id:
+                continue
+            values = layout.codec.unpack_from(data)
+            for (index, sub, offset, size), value in zip(slots, values, strict=True):
+                store.setdefault(index, {})[sub] = bytes(data[offset:offset + size])
+                if index == cia402.CONTROLWORD:
+                    self.controlword = value
+                elif index == cia402.TARGET_TORQUE:
+                    self.setpoint = value
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        d = self.drive
+        d.sync(self.controlword, self.scale.from_permille(self.setpoint))
+        if self._heartbeat_ms:
+            self._heartbeat_cycles += 1
+            if self._heartbeat_cycles * self.plant_dt_ms >= self._heartbeat_ms:
+                self._heartbeat_cycles = 0
+                self.network.send_message(HEARTBEAT_BASE + self.node_id, bytes([self.nmt]))
+        if self.nmt is not NmtState.OPERATIONAL:
+            return
+        if self._mapping_dirty:
+            self._load_mapping()
+        values = {
+            cia402.STATUSWORD: self.statusword(),
+            cia402.POSITION_ACTUAL: self.encoder.to_counts(d.position),
+            cia402.VELOCITY_ACTUAL: self.encoder.to_counts(d.velocity),
+            cia402.TORQUE_ACTUAL: self.scale.to_permille(d.applied),
+            cia402.ERROR_CODE: d.error_code,
+            cia402.MODES_OF_OPERATION_DISPLAY: self.mode,
+        }
+        send = self.network.send_message
+        for cob, layout in self._tpdos:
+            send(cob, layout.codec.pack(*[values[index] for index, _ in layout.entries]))
+
+    @property
+    def plant_dt_ms(self) -> float:
+        return self.drive.plant.dt * 1000.0
+
+    def close(self) -> None:
+        self.network.unsubscribe(self._sync_cob, self._on_sync)
+        self.network.unsubscribe(NMT_COB_ID, self._on_nmt)
+        for cob, _layout, _slots in self._rpdos:
+            self.network.unsubscribe(cob, self._on_rpdo)

@@ -1,0 +1,35 @@
+"""Shared fixtures: fail any test in which canopen logged an ERROR (it swallows exceptions raised in
+subscribe callbacks and only logs them)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tests/helpers.py
+
+
+class _CanopenErrors(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(level=logging.ERROR)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.fixture(autouse=True)
+def fail_on_canopen_errors():
+    handler = _CanopenErrors()
+    logger = logging.getLogger("canopen")
+    logger.addHandler(handler)
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+    if handler.records:
+        msgs = "; ".join(f"{r.name}: {r.getMessage()}" for r in handler.records)
+        pytest.fail(f"canopen logged ERROR (an exception in a callback was swallowed): {msgs}")

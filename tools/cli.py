@@ -58,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, help="seed of the force noise")
     t.add_argument("--out", default="traces", metavar="DIR", help="folder for AXIS.csv and the PNG (default traces)")
     t.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    t.add_argument("--paced", action="store_true",
+                   help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
+                   "are recorded in the trace")
     t.add_argument("--sim", action="store_true",
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -143,7 +146,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
-        result = run_channels(channels, duration=args.duration, on_start=started,
+        result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
                               progress=not args.quiet and sys.stderr.isatty())
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -1,0 +1,91 @@
+"""Cycle rates of the servo loop over CANopen, beside a bare python-can ping-pong in the same run.
+
+* lockstep 1 axis / 2 axes: `drivectl trace` on the emulated machine (virtual bus, lockstep): SYNC,
+  TPDOs, controller, RPDO and the plant, cycles per wall second (target >= 10 000 for one axis);
+* ping-pong: two python-can virtual buses, one frame each way per cycle, nothing else: the ceiling
+  the bus library sets;
+* paced: the same one-axis loop held to 1 kHz on the wall clock for --paced-seconds: missed-deadline
+  fraction (target < 0.5 %) and worst lateness;
+* slcan / socketcand across processes: not wired yet (reported as null, and said so).
+
+    python bench/loop_rate.py [--json] [--seconds 3] [--paced-seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import can
+
+from drivectl.controllers.registry import make_controller
+from drivectl.controllers.servo import Channel, run_channels
+from drivectl.driver.network import unique_virtual_channel
+from drivectl.profiles.library import load_profile
+from drivectl.tools.config import load_config
+from drivectl.tools.machine import open_machine
+
+
+def lockstep_cps(names: list[str], seconds: float, pace: bool = False) -> tuple[float, dict]:
+    cfg = load_config()
+    profiles = {n: load_profile(cfg.axis(n).profile, axis=n) for n in names}
+    with open_machine(cfg, names, start={n: p.start_position for n, p in profiles.items()}) as m:
+        channels = [Channel(m.axes[n], make_controller(cfg.axis(n).controller, cfg.cycle_s,
+                                                       cfg.axis(n).controller_settings, plant=m.specs[n], axis=n),
+                            profiles[n], cfg.axis(n).limits) for n in names]
+        t0 = time.perf_counter()
+        res = run_channels(channels, duration=seconds, pace=pace)
+        wall = time.perf_counter() - t0
+    return res.cycles / wall, res.trace.meta
+
+
+def pingpong_cps(cycles: int) -> float:
+    ch = unique_virtual_channel("pingpong")
+    a = can.Bus(interface="virtual", channel=ch)
+    b = can.Bus(interface="virtual", channel=ch)
+    ping = can.Message(arbitration_id=0x80, data=b"", is_extended_id=False)
+    pong = can.Message(arbitration_id=0x181, data=bytes(6), is_extended_id=False)
+    t0 = time.perf_counter()
+    for _ in range(cycles):
+        a.send(ping)
+        b.recv(0)
+        b.send(pong)
+        a.recv(0)
+    wall = time.perf_counter() - t0
+    a.shutdown()
+    b.shutdown()
+    return cycles / wall
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per lockstep run")
+    ap.add_argument("--paced-seconds", type=float, default=10.0)
+    args = ap.parse_args()
+    one, _ = lockstep_cps(["x"], args.seconds)
+    two, _ = lockstep_cps(["x", "y"], args.seconds)
+    pp = pingpong_cps(20000)
+    _, meta = lockstep_cps(["x"], args.paced_seconds, pace=True)
+    missed = float(meta["missed_fraction"])
+    worst = float(meta["worst_late_ms"])
+    out = {"lockstep_1axis_cps": round(one), "lockstep_2axis_cps": round(two), "pingpong_cps": round(pp),
+           "slcan_cps": None, "socketcand_cps": None, "paced_missed_fraction": missed,
+           "paced_worst_late_ms": round(worst, 3)}
+    if args.json:
+        print(json.dumps(out))
+        return
+    print(f"{'loop':<44} {'cycles/s':>10} {'target':>10}")
+    print(f"{'lockstep, 1 axis (virtual bus, emulated drive)':<44} {one:>10.0f} {'>= 10000':>10}")
+    print(f"{'lockstep, 2 axes (one SYNC, two drives)':<44} {two:>10.0f} {'':>10}")
+    print(f"{'python-can ping-pong (1 frame each way)':<44} {pp:>10.0f} {'':>10}")
+    print(f"{'slcan across processes':<44} {'not yet':>10}")
+    print(f"{'socketcand across processes':<44} {'not yet':>10}")
+    print(f"\npaced 1 kHz, {args.paced_seconds:g} s, one axis: missed {missed * 100:.3f} % of deadlines "
+          f"(target < 0.5 %), worst lateness {worst:.3f} ms")
+    print(f"ratio lockstep 1 axis / ping-pong: {one / pp:.2f} (the loop adds SYNC, 2 TPDOs, controller, plant)")
+
+
+if __name__ == "__main__":
+    main()

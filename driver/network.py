@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 from typing import Any
 
 import can
@@ -72,9 +73,12 @@ class LockstepNetwork(canopen.Network):
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
+        self.log: can.Listener | None = None
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
+        if self.log is not None:
+            self.log.on_message_received(_logged(can_id, data, remote, rx=False))
         self.lockstep.settle()
 
     def pump(self) -> bool:
@@ -82,13 +86,19 @@ class LockstepNetwork(canopen.Network):
         got = False
         recv = self._recv
         notify = self.notify
+        log = self.log
         while (msg := recv(0)) is not None:
             got = True
+            if log is not None:
+                log.on_message_received(msg)
             if not msg.is_error_frame:
                 notify(msg.arbitration_id, msg.data, msg.timestamp)
         return got
 
     def disconnect(self) -> None:
+        if self.log is not None:
+            self.log.stop()
+            self.log = None
         if self in self.lockstep.networks:
             self.lockstep.networks.remove(self)
         if self.bus is not None:
@@ -102,3 +112,19 @@ def threaded_network(bus: can.BusABC) -> canopen.Network:
     net.NOTIFIER_CYCLE = 0.05  # teardown waits up to one cycle; canopen's default is 1 s
     net.notifier = can.Notifier(bus, net.listeners, net.NOTIFIER_CYCLE)
     return net
+
+
+def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:
+    return can.Message(timestamp=time.time(), arbitration_id=can_id, data=bytes(data), is_remote_frame=remote,
+                       is_extended_id=can_id > 0x7FF, is_rx=rx)
+
+
+def attach_bus_log(network: LockstepNetwork, path: str) -> can.Listener:
+    """Record every frame the network sends and receives (on a bus: every frame) through python-can's
+    Logger, the format chosen by the file's suffix (.asc, .blf, .log, .csv, .trc)."""
+    try:
+        logger = can.Logger(path)
+    except ValueError as exc:
+        raise ValueError(f"--bus-log {path}: {exc}") from None
+    network.log = logger
+    return logger

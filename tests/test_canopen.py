@@ -257,3 +257,31 @@ def test_canopen_error_logs_fail_tests(fail_on_canopen_errors):
     assert any("callback failed" in r.getMessage() for r in fail_on_canopen_errors.records)
     fail_on_canopen_errors.records.clear()  # expected here; anywhere else it fails the test
     logging.getLogger("canopen").debug("ok")
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log"])
+def test_bus_log_reads_back_with_the_sync_pdo_sequence(tmp_path, suffix, capsys):
+    import can
+
+    from drivectl.tools.cli import main
+
+    log = tmp_path / f"bus{suffix}"
+    rc = main(["trace", "--axis", "x", "--duration", "0.02", "--out", str(tmp_path), "--no-plot", "--quiet",
+               "--bus-log", str(log)])
+    assert rc == 0
+    ids = [m.arbitration_id for m in can.LogReader(str(log))]
+    assert ids[0] == HEARTBEAT_BASE + 1  # the drive's boot-up
+    assert NMT_COB_ID in ids and 0x601 in ids and 0x581 in ids  # NMT, SDO configuration
+    first_sync = ids.index(0x80)
+    cyclic = ids[first_sync:first_sync + 4 * 21]
+    # every cycle: SYNC, then the drive's two TPDOs, then the master's RPDO
+    assert cyclic == [0x80, 0x181, 0x281, 0x201] * 21
+
+
+def test_bus_log_with_an_unknown_suffix_is_bad_input(tmp_path, capsys):
+    from drivectl.tools.cli import main
+
+    rc = main(["trace", "--axis", "x", "--duration", "0.01", "--out", str(tmp_path), "--bus-log",
+               str(tmp_path / "bus.xyz")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "bus.xyz: unknown log format" in err

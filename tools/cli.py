@@ -58,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0, help="seed of the force noise")
     t.add_argument("--out", default="traces", metavar="DIR", help="folder for AXIS.csv and the PNG (default traces)")
     t.add_argument("--no-plot", action="store_true", help="skip the PNG")
+    t.add_argument("--bus-log", metavar="FILE", help="record every CAN frame (python-can Logger; format by suffix: "
+                   ".asc .blf .log .csv .trc)")
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace")
@@ -111,7 +113,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
     from drivectl.controllers.servo import Channel, StopReason, run_channels
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.profiles.library import load_profile
-    from drivectl.tools.config import load_config
+    from drivectl.tools.config import ConfigError, load_config
     from drivectl.tools.machine import open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
@@ -128,8 +130,11 @@ def cmd_trace(args: argparse.Namespace) -> int:
         settings = ac.controller_settings if ctrl_name == ac.controller else {}
         controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
+    if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
+        raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
-                           seed=args.seed, start={n: p.start_position for n, p in profiles.items()})
+                           seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
+                           bus_log=args.bus_log)
     channels = []
     for name in names:
         ac = cfg.axis(name)
@@ -159,6 +164,8 @@ def cmd_trace(args: argparse.Namespace) -> int:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
     _print_summary({n: summarize(tr) for n, tr in result.traces.items()}, result.traces)
+    if args.bus_log:
+        written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
     if result.stop is StopReason.INTERRUPTED:

@@ -15,7 +15,7 @@ from typing import Any
 
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
-from drivectl.driver.network import Lockstep, LockstepNetwork, open_bus, unique_virtual_channel
+from drivectl.driver.network import Lockstep, LockstepNetwork, attach_bus_log, open_bus, unique_virtual_channel
 from drivectl.driver.units import EffortScale, Encoder
 from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
@@ -69,12 +69,16 @@ def open_machine(
     start: dict[str, float] | None = None,
     noise: float = 0.0,
     seed: int = 0,
+    bus_log: str | None = None,
 ) -> Machine:
-    """The axes ``names`` of ``cfg``, each starting at ``start[name]`` (m)."""
+    """The axes ``names`` of ``cfg``, each starting at ``start[name]`` (m); ``bus_log`` records every
+    frame to a file (python-can Logger, format by suffix)."""
     start = start or {}
     specs = plant_specs(cfg, names, plant, effects)
     dt = cfg.cycle_s
     if sim:
+        if bus_log:
+            raise ValueError("--bus-log: there is no bus with --sim")
         axes: dict[str, Axis] = {}
         for i, name in enumerate(names):
             ac = cfg.axis(name)
@@ -92,6 +96,8 @@ def open_machine(
     machine._closers.append(emu_net.disconnect)
     master_net = LockstepNetwork(open_bus("virtual", channel), lockstep)
     machine._closers.append(master_net.disconnect)
+    if bus_log:
+        attach_bus_log(master_net, bus_log)
     try:
         for i, name in enumerate(names):
             ac = cfg.axis(name)

@@ -128,3 +128,16 @@ def attach_bus_log(network: LockstepNetwork, path: str) -> can.Listener:
         raise ValueError(f"--bus-log {path}: {exc}") from None
     network.log = logger
     return logger
+
+
+def close_threaded(net: canopen.Network) -> None:
+    """Stop the notifier (its listeners, a bus log among them, are stopped too), then the bus."""
+    if net.notifier is not None:
+        net.notifier.stop(1.0)
+        for listener in net.notifier.listeners:
+            if isinstance(listener, can.Listener) and not isinstance(listener, canopen.network.MessageListener):
+                listener.stop()
+        net.notifier = None
+    if net.bus is not None:
+        net.bus.shutdown()
+        net.bus = None

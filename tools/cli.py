@@ -67,6 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    from drivectl.tools.emulate import add_emulate_parser
+
+    add_emulate_parser(sub)
+
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
     pl.add_argument("--out", metavar="PNG", help="output PNG (default: beside the first trace)")
@@ -93,6 +97,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_trace(args)
         if args.command == "plot":
             return cmd_plot(args)
+        if args.command == "emulate":
+            from drivectl.tools.emulate import cmd_emulate
+
+            return cmd_emulate(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:

@@ -26,6 +26,8 @@ cycle_s = 0.001                 # servo cycle = SYNC period
 interface = "virtual"           # python-can interface: virtual | slcan | socketcand | socketcan
 channel = "drivectl"            # virtual: any name (made unique per run); slcan: the tty; socketcan: can0
 bitrate = 1000000
+# host = "127.0.0.1"            # socketcand only (drivectl emulate --socketcand serves loopback)
+# port = 29536
 
 [axes.x]
 node_id = 1
@@ -86,6 +88,8 @@ class BusConfig:
     interface: str = "virtual"
     channel: str = "drivectl"
     bitrate: int = 1_000_000
+    host: str = "127.0.0.1"  # socketcand only
+    port: int = 29536  # socketcand only
 
 
 class ConfigError(ValueError):
@@ -157,7 +161,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
-    extra = set(bus_raw) - {"interface", "channel", "bitrate"}
+    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port"}
     if extra:
         raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
     from drivectl.driver.network import INTERFACES
@@ -168,7 +172,11 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     bitrate = bus_raw.get("bitrate", 1_000_000)
     if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
         raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
-    bus = BusConfig(interface, _string(src, "bus.channel", bus_raw.get("channel", "drivectl")), bitrate)
+    port = bus_raw.get("port", 29536)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+        raise ConfigError(f"{src}: bus.port: expected a TCP port 1..65535, got {port!r}")
+    bus = BusConfig(interface, _string(src, "bus.channel", bus_raw.get("channel", "drivectl")), bitrate,
+                    _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port)
     cycle = _number(src, "cycle_s", data.get("cycle_s", 0.001), positive=True)
     axes_raw = data.get("axes")
     if not isinstance(axes_raw, dict) or not axes_raw:

@@ -13,9 +13,19 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import can
+
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
-from drivectl.driver.network import Lockstep, LockstepNetwork, attach_bus_log, open_bus, unique_virtual_channel
+from drivectl.driver.network import (
+    Lockstep,
+    LockstepNetwork,
+    attach_bus_log,
+    close_threaded,
+    open_bus,
+    threaded_network,
+    unique_virtual_channel,
+)
 from drivectl.driver.units import EffortScale, Encoder
 from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
@@ -87,8 +97,7 @@ def open_machine(
                                  initial_position=start.get(name, 0.0))
         return Machine(axes, specs, "sim (SimAxis, no bus)")
     if cfg.bus.interface != "virtual":
-        raise NotImplementedError(f"bus interface {cfg.bus.interface!r}: only the in-process virtual bus is "
-                                  "wired into `drivectl trace` so far")
+        return _open_remote(cfg, names, specs, bus_log)
     lockstep = Lockstep()
     channel = unique_virtual_channel(cfg.bus.channel)
     machine = Machine({}, specs, f"virtual:{channel} (emulated CiA 402 drives, lockstep)")
@@ -111,6 +120,36 @@ def open_machine(
         for name in names:
             ac = cfg.axis(name)
             axis = CanopenAxis(master_net, ac.node_id, name=name, dt=dt, effort_unit=specs[name].effort_unit,
+                               eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
+                               effort_scale=EffortScale(ac.rated_effort), clock=clock)
+            axis.connect()
+            machine.axes[name] = axis
+            machine._closers.append(axis.close)
+    except BaseException:
+        machine.close()
+        raise
+    return machine
+
+
+def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, PlantSpec],
+                 bus_log: str | None) -> Machine:
+    """Masters on a bus that reaches drives in another process (slcan, socketcand, socketcan):
+    a notifier thread receives, each cycle waits for its TPDOs against a deadline."""
+    b = cfg.bus
+    kwargs: dict[str, Any] = {}
+    if b.interface == "socketcand":
+        kwargs = {"host": b.host, "port": b.port}
+    bus = open_bus(b.interface, b.channel, b.bitrate, **kwargs)
+    net = threaded_network(bus)
+    machine = Machine({}, specs, f"{b.interface}:{b.channel}")
+    machine._closers.append(lambda: close_threaded(net))
+    if bus_log:
+        net.notifier.add_listener(can.Logger(bus_log))
+    try:
+        clock = SyncClock(net)
+        for name in names:
+            ac = cfg.axis(name)
+            axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
                                eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                                effort_scale=EffortScale(ac.rated_effort), clock=clock)
             axis.connect()

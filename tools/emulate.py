@@ -1,0 +1,118 @@
+"""`drivectl emulate`: the emulated drives of a machine on a bus, until stopped.
+
+The drives answer like real CiA 402 drives, so a second drivectl (or any CANopen tool) can be pointed
+at them. Without kernel CAN the emulator is itself the adapter:
+
+* ``--slcan``: it opens a pseudo-terminal and speaks SLCAN on it, printing the tty path; the master
+  uses python-can's slcan interface on that path (``bus.interface = "slcan"``, ``channel = TTY``);
+* ``--socketcand [PORT]``: it serves the socketcand protocol on 127.0.0.1 (only loopback);
+* ``--interface socketcan --channel vcan0``: a kernel CAN interface, where the kernel has one.
+
+The plant advances one cycle per SYNC received (simulated time), so a run across processes gives
+the same trace as the lockstep virtual bus, bit for bit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from typing import Any
+
+import can
+import canopen
+
+
+def add_emulate_parser(sub: Any) -> None:
+    e = sub.add_parser("emulate", help="run the machine's emulated drives on a bus until stopped",
+                       description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1].replace("\n", " "))
+    e.add_argument("--axis", default=None, help="axes to emulate, comma-separated (default: all of the config)")
+    how = e.add_mutually_exclusive_group()
+    how.add_argument("--slcan", action="store_true", help="be an SLCAN adapter on a new pseudo-terminal")
+    how.add_argument("--socketcand", nargs="?", const=0, type=int, metavar="PORT",
+                     help="serve the socketcand protocol on 127.0.0.1:PORT (default: a free port)")
+    how.add_argument("--interface", choices=("socketcan", "virtual"), help="a python-can interface to join")
+    e.add_argument("--channel", default="vcan0", help="channel for --interface (default vcan0)")
+    e.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
+                   help="add a physical effect to every emulated plant (repeatable)")
+    e.add_argument("--plant", help="override the plants (built-in name or TOML file)")
+    e.add_argument("--noise", type=float, default=0.0, help="force noise std (effort units)")
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--bus-log", metavar="FILE", help="record every frame (python-can Logger, format by suffix)")
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    from drivectl.plant_emulator.effects import parse_effect
+    from drivectl.plant_emulator.node402 import EmulatedDrive
+    from drivectl.profiles.library import load_profile
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import plant_specs
+
+    cfg = load_config(args.config)
+    names = [a.strip() for a in args.axis.split(",")] if args.axis else list(cfg.axes)
+    effects = [parse_effect(t) for t in args.effect]
+    specs = plant_specs(cfg, names, args.plant, effects)
+    if args.slcan:
+        from drivectl.plant_emulator.slcan import SlcanAdapterBus
+
+        bus: can.BusABC = SlcanAdapterBus.open_pty()
+        where = f"slcan tty {bus.tty_path}"
+        hint = f'bus.interface = "slcan", bus.channel = "{bus.tty_path}"'
+    elif args.socketcand is not None:
+        from drivectl.plant_emulator.socketcand import SocketcandServerBus
+
+        bus = SocketcandServerBus(port=args.socketcand)
+        where = f"socketcand 127.0.0.1:{bus.port}"
+        hint = f'bus.interface = "socketcand", bus.host = "127.0.0.1", bus.port = {bus.port}, bus.channel = "can0"'
+    elif args.interface:
+        bus = can.Bus(interface=args.interface, channel=args.channel)
+        where = f"{args.interface}:{args.channel}"
+        hint = f'bus.interface = "{args.interface}", bus.channel = "{args.channel}"'
+    else:
+        print("drivectl: emulate: choose a bus: --slcan, --socketcand [PORT] or --interface socketcan",
+              file=sys.stderr)
+        return 2
+    net = canopen.Network(bus)  # no notifier: this process pumps its own bus, in order
+    log = can.Logger(args.bus_log) if args.bus_log else None
+    drives = []
+    for i, name in enumerate(names):
+        ac = cfg.axis(name)
+        # each axis stands where its configured profile starts, as `drivectl trace` expects
+        start = load_profile(ac.profile, axis=name).start_position
+        drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
+                              resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
+                              initial_position=start)
+        drives.append(drive)
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *a: stop.append(signal.SIGTERM))
+    original_send = net.send_message
+    if log is not None:
+        def logged_send(can_id: int, data: bytes, remote: bool = False) -> None:
+            original_send(can_id, data, remote)
+            log.on_message_received(can.Message(arbitration_id=can_id, data=bytes(data), is_rx=False,
+                                                is_extended_id=can_id > 0x7FF))
+        net.send_message = logged_send  # type: ignore[method-assign]
+    for drive in drives:
+        drive.boot()
+    nodes = ", ".join(f"{n} (node {cfg.axis(n).node_id}, {specs[n].name})" for n in names)
+    print(f"emulating {nodes} on {where}", flush=True)
+    print(f"point a master at it with: {hint}", flush=True)
+    try:
+        while not stop:
+            msg = bus.recv(0.1)
+            if msg is None:
+                continue
+            if log is not None:
+                log.on_message_received(msg)
+            if not msg.is_error_frame:
+                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
+    except KeyboardInterrupt:
+        stop.append(signal.SIGINT)
+    finally:
+        for drive in drives:
+            drive.close()
+        if log is not None:
+            log.stop()
+        bus.shutdown()
+    print(f"emulator stopped after {drives[0].drive.syncs if drives else 0} SYNCs", file=sys.stderr)
+    return 0

@@ -68,8 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
     from drivectl.tools.emulate import add_emulate_parser
+    from drivectl.tools.explain import add_explain_parser
 
     add_emulate_parser(sub)
+    add_explain_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -97,6 +99,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_trace(args)
         if args.command == "plot":
             return cmd_plot(args)
+        if args.command == "explain":
+            from drivectl.tools.explain import cmd_explain
+
+            return cmd_explain(args)
         if args.command == "emulate":
             from drivectl.tools.emulate import cmd_emulate
 

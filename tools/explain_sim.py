@@ -1,0 +1,357 @@
+"""Windowed open-loop simulation for `drivectl explain`, vectorised over windows and candidate plants.
+
+The gap of `explain` restarts the plant from the measured state every ~150 ms and drives it with the
+recorded effort (transport rule: the effort on row k acts from t(k+1) to t(k+2)). Fitting an effect
+means evaluating that gap for many candidate parameter sets, so this module steps *all windows and all
+candidates at once* with numpy: arrays of shape (W, C) (windows x candidates), one Python iteration
+per substep.
+
+Exactness: the candidates are real :class:`~drivectl.plant_emulator.models.Plant` objects (built
+from ``PlantSpec.with_effect``), and this module reads their compiled matrices (exact ZOH
+discretisation per direction of motion and contact state), friction levels, delay split, limit and
+table forces, and repeats ``Plant._step_one`` / ``Plant._step_two`` operation for operation (Moreau
+Coulomb friction, substep-midpoint table forces, per-substep delay weights). With the plant's own
+substep count the result equals ``Plant.step`` to rounding (tests/test_explain.py checks it); fewer
+substeps are used only for the coarse search of a fit, never for the reported gaps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivectl.plant_emulator.models import Plant
+
+
+@dataclass
+class Windows:
+    """Where the windows start and what drives them (all arrays indexed by window)."""
+
+    start: np.ndarray  # (W,) row of the initial state
+    length: int  # steps per window
+    q0: np.ndarray  # (W,) measured position at the start
+    v0: np.ndarray  # (W,) estimated velocity at the start
+    t0: np.ndarray  # (W,) time at the start (plant time, for time-dependent disturbances)
+    applied: np.ndarray  # (W, H + L) effort acting in each step (transport rule), H rows of history first
+    history: int  # H
+    measured: np.ndarray  # (W, L) measured position after each step (rows start+1 .. start+L)
+    initial_force: np.ndarray  # (W,) effort acting in the first step (for the two-body initial state)
+    side_force: np.ndarray  # (W,) the last clearly non-zero effort up to the start (which side a lash rests on)
+
+
+def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float, length: int,
+                 history: int = 16, starts: np.ndarray | None = None, side_threshold: float = 0.0) -> Windows:
+    """Non-overlapping windows of ``length`` steps covering the trace (or the given ``starts``).
+
+    ``side_threshold``: an effort at least this large decides on which side of a dead zone the screw
+    rests; below it (a dwell holding ~0) the screw stays where the last such effort pushed it.
+    """
+    n = len(pos)
+    if starts is None:
+        starts = np.arange(0, n - length, length)
+    starts = np.asarray(starts, dtype=int)
+    # transport rule: the effort on row k acts from t(k+1) to t(k+2), i.e. step j (t(j) -> t(j+1))
+    # is driven by effort[j - 1]; before the first row nothing acted
+    applied_rows = np.concatenate(([0.0], effort[:-1]))
+    padded = np.concatenate((np.zeros(history), applied_rows))
+    idx = starts[:, None] + np.arange(-history, length)[None, :] + history
+    applied = padded[idx]
+    meas = pos[starts[:, None] + np.arange(1, length + 1)[None, :]]
+    big = np.abs(applied_rows) > side_threshold
+    last = np.maximum.accumulate(np.where(big, np.arange(n), 0))
+    side = np.where(big[last], applied_rows[last], applied_rows)[starts]
+    return Windows(starts, length, pos[starts].copy(), vel[starts].copy(), starts * dt, applied, history, meas,
+                   applied_rows[starts].copy(), side)
+
+
+class BatchSim:
+    """C candidate plants (same body count) stepped over W windows at once."""
+
+    def __init__(self, plants: Sequence[Plant], substeps: int | None = None):
+        if not plants:
+            raise ValueError("BatchSim: no plants")
+        self.plants = list(plants)
+        p0 = self.plants[0]
+        self.dt = p0.dt
+        self.nb = p0.n_bodies
+        self.two = self.nb == 2 or bool(p0._gap)
+        if any((p.n_bodies == 2 or bool(p._gap)) != self.two for p in self.plants):
+            raise ValueError("BatchSim: candidates must share the body count")
+        self.substeps = int(substeps or max(p.substeps for p in self.plants))
+        C = len(self.plants)
+        ns = 2 * self.nb
+        # rebuild each candidate at the common substep (same design, so the same physics)
+        compiled = [p if p.substeps == self.substeps else Plant(p.design, p.dt, self.substeps, p.name)
+                    for p in self.plants]
+        self.h = self.dt / self.substeps
+        # matrices per combination of (engaged, dir0, dir1); a plant without asymmetry or gap
+        # has only some of them, which stand in for the rest (as Plant.step looks them up)
+        K = 8
+        self.A = np.zeros((C, K, ns, ns))
+        self.B = np.zeros((C, K, ns, self.nb))
+        for c, p in enumerate(compiled):
+            for e in (0, 1):
+                for d0 in (0, 1):
+                    for d1 in (0, 1):
+                        key = (bool(e) if p._gap else True, 1 - 2 * d0 if p._asym else 1,
+                               1 - 2 * d1 if (p._asym and self.nb == 2) else 1)
+                        A, B = p._mats[key]
+                        k = e * 4 + d0 * 2 + d1
+                        self.A[c, k] = np.asarray(A)
+                        self.B[c, k] = np.asarray(B)
+        d = [p.design for p in compiled]
+        self.fc_pos = np.array([[b.fc_pos for b in x.bodies] for x in d])  # (C, nb)
+        self.fc_neg = np.array([[b.fc_neg for b in x.bodies] for x in d])
+        self.st_exc = np.array([[b.stribeck_excess for b in x.bodies] for x in d])
+        self.st_vel = np.array([[b.stribeck_velocity for b in x.bodies] for x in d])
+        self.coulomb = np.array([[b.has_coulomb for b in x.bodies] for x in d]).any(axis=0)  # per body
+        self.offset = np.array([x.table_offset for x in d])
+        per = [x.periodic[0] if x.periodic else (0.0, 1.0, 0.0) for x in d]
+        if any(len(x.periodic) > 1 for x in d):
+            raise ValueError("BatchSim: at most one periodic term")
+        self.per_amp = np.array([p[0] for p in per])
+        self.per_k = np.array([2 * math.pi / p[1] for p in per])
+        self.per_phase = np.array([p[2] for p in per])
+        self.has_periodic = bool(np.any(self.per_amp != 0))
+        self.has_offset = bool(np.any(self.offset != 0))
+        self.dist_a = np.array([x.disturbance_amplitude for x in d])
+        self.dist_w = np.array([2 * math.pi * x.disturbance_frequency for x in d])
+        self.has_dist = bool(np.any(self.dist_a != 0))
+        self.limit = np.array([x.input_limit for x in d])
+        self.delay_cycles = np.array([p._delay_cycles if p._history_len else 0 for p in compiled])
+        self.delay_frac = np.array([p._delay_frac if p._history_len else 0.0 for p in compiled])
+        self.delayed = bool(np.any([p._history_len for p in compiled]))
+        self.gap = np.array([p._gap for p in compiled])
+        self.stiff = np.array([x.coupling.stiffness if x.coupling else 0.0 for x in d])
+        self.masses = np.array([[b.mass for b in x.bodies] for x in d])
+        self.damp = np.array([x.coupling.damping if x.coupling else 0.0 for x in d])
+        self.c_pos = np.array([[b.c_pos for b in x.bodies] for x in d])
+        self.c_neg = np.array([[b.c_neg for b in x.bodies] for x in d])
+
+    # ---------------------------------------------------------------------------------------------
+    def _initial(self, win: Windows) -> list[np.ndarray]:
+        """Start state per (window, candidate): the measured position and velocity.
+
+        Two bodies start moving together (no relative velocity) with the coupling loaded as it is
+        in quasi-static motion under the effort acting then: spring extension
+        (m1 (f - F0) + m0 F1) / (k M) from equal accelerations (F0, F1 the bodies' friction at v0),
+        and with backlash the screw on the side of the dead zone that the effort pushes it to.
+        """
+        W, C = len(win.start), len(self.plants)
+        q = np.broadcast_to(win.q0[:, None], (W, C)).copy()
+        v = np.broadcast_to(win.v0[:, None], (W, C)).copy()
+        if not self.two:
+            return [q, v]
+        f = win.initial_force[:, None]
+        m0, m1 = self.masses[:, 0][None, :], self.masses[:, 1][None, :]
+        pos = v > 0
+        F = []
+        for b in (0, 1):
+            c = np.where(pos, self.c_pos[:, b][None, :], self.c_neg[:, b][None, :])
+            fc = np.where(pos, self.fc_pos[:, b][None, :], -self.fc_neg[:, b][None, :])
+            F.append(np.where(v == 0, 0.0, c * v + fc))
+        k = np.maximum(self.stiff[None, :], 1e-9)
+        ext = (m1 * (f - F[0]) + m0 * F[1]) / (k * (m0 + m1))
+        half = 0.5 * self.gap[None, :]
+        side = np.where(win.side_force[:, None] >= 0, 1.0, -1.0)
+        # against the side the screw rests on; an effort below the threshold pulling the other way
+        # only relaxes the contact (|ext| is small then), it does not cross the dead zone
+        rel = ext + side * half
+        # body 0 (screw or motor side) leads the table by rel
+        return [q + rel, v.copy(), q, v]
+
+    def run(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Simulated table position after each step: (W, C, L).
+
+        ``internal`` = (relative position, relative velocity) of body 0 against the table at each
+        window start, (W, C), for two-body plants whose internal state was reconstructed from the
+        data before the window (see :func:`internal_state`); default: quasi-static.
+        """
+        if self.two:
+            return self._run_two(win, internal)
+        return self._run_one(win)[0]
+
+    def run_with_velocity(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
+        """Simulated table position and velocity after each step (rigid plants): two (W, C, L)."""
+        if self.two:
+            raise ValueError("BatchSim: velocities only for one-body plants")
+        return self._run_one(win)
+
+    def _inputs(self, win: Windows, j: int, i: int) -> np.ndarray:
+        """Effort acting in substep i of step j, after the extra delay and the drive's limit: (W, C)."""
+        H = win.history
+        if self.delayed:
+            n = self.delay_cycles
+            cur = win.applied[:, H + j - n]
+            prev = win.applied[:, H + j - n - 1]
+            w_prev = np.clip((self.delay_frac * self.dt - i * self.h) / self.h, 0.0, 1.0)
+            f = w_prev[None, :] * prev + (1.0 - w_prev[None, :]) * cur
+        else:
+            f = np.broadcast_to(win.applied[:, H + j][:, None], (len(win.start), len(self.plants)))
+        return np.clip(f, -self.limit[None, :], self.limit[None, :])
+
+    def _coulomb_limit(self, body: int, v_ref: np.ndarray, positive: np.ndarray) -> np.ndarray:
+        fc = np.where(positive, self.fc_pos[:, body][None, :], self.fc_neg[:, body][None, :])
+        exc = self.st_exc[:, body]
+        if np.any(exc != 0):
+            r = v_ref / self.st_vel[:, body][None, :]
+            fc = fc + exc[None, :] * np.exp(-r * r)
+        return fc
+
+    def _run_one(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
+        W, C, L = len(win.start), len(self.plants), win.length
+        x, v = self._initial(win)
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L))
+        h = self.h
+        A, B = self.A, self.B
+        # the two sets of coefficients (moving +, moving -) as (C,) rows
+        a00p, a01p, a10p, a11p = (A[:, 0, r, s_][None, :] for r, s_ in ((0, 0), (0, 1), (1, 0), (1, 1)))
+        a00n, a01n, a10n, a11n = (A[:, 2, r, s_][None, :] for r, s_ in ((0, 0), (0, 1), (1, 0), (1, 1)))
+        b0p, b1p = B[:, 0, 0, 0][None, :], B[:, 0, 1, 0][None, :]
+        b0n, b1n = B[:, 2, 0, 0][None, :], B[:, 2, 1, 0][None, :]
+        coul = bool(self.coulomb[0])
+        t0 = win.t0[:, None]
+        for j in range(L):
+            f_in = self._inputs(win, j, 0)
+            for i in range(self.substeps):
+                f = self._inputs(win, j, i) if self.delayed else f_in
+                if self.has_offset or self.has_periodic:
+                    f = f + self.offset[None, :]
+                    if self.has_periodic:
+                        xm = x + 0.5 * h * v
+                        f = f + self.per_amp[None, :] * np.sin(self.per_k[None, :] * xm + self.per_phase[None, :])
+                if self.has_dist:
+                    f = f + self.dist_a[None, :] * np.sin(self.dist_w[None, :] * (t0 + j * self.dt + (i + 0.5) * h))
+                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
+                a00 = np.where(d, a00p, a00n)
+                a01 = np.where(d, a01p, a01n)
+                a10 = np.where(d, a10p, a10n)
+                a11 = np.where(d, a11p, a11n)
+                b0 = np.where(d, b0p, b0n)
+                b1 = np.where(d, b1p, b1n)
+                xf = a00 * x + a01 * v + b0 * f
+                vf = a10 * x + a11 * v + b1 * f
+                if coul:
+                    positive = vf > 0.0
+                    lim = self._coulomb_limit(0, v, positive)
+                    direction = np.where(positive, 1.0, -1.0)
+                    stick = np.abs(vf) <= b1 * lim
+                    lam = np.where(stick, -vf / b1, -direction * lim)
+                    lam = np.where(vf == 0.0, 0.0, lam)
+                    xf = xf + b0 * lam
+                    vf = vf + b1 * lam
+                    vf = np.where(np.abs(vf) < 1e-15, 0.0, vf)
+                x, v = xf, vf
+            out[:, :, j] = x
+            out_v[:, :, j] = v
+        return out, out_v
+
+    def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        W, C, L = len(win.start), len(self.plants), win.length
+        init = self._initial(win)
+        if internal is not None:
+            init[0] = init[2] + internal[0]
+            init[1] = init[3] + internal[1]
+        s = np.stack(init, axis=-1)  # (W, C, 4)
+        out = np.empty((W, C, L))
+        h = self.h
+        cidx = np.broadcast_to(np.arange(C)[None, :], (W, C))
+        gap = self.gap[None, :]
+        half = 0.5 * gap
+        kh = self.stiff[None, :] * half
+        has_gap = bool(np.any(self.gap > 0))
+        t0 = win.t0[:, None]
+        for j in range(L):
+            f_in = self._inputs(win, j, 0)
+            for i in range(self.substeps):
+                x0, v0, x1, v1 = s[..., 0], s[..., 1], s[..., 2], s[..., 3]
+                f0 = self._inputs(win, j, i) if self.delayed else f_in
+                f1 = np.zeros((W, C))
+                if self.has_offset or self.has_periodic:
+                    f1 = f1 + self.offset[None, :]
+                    if self.has_periodic:
+                        xm = x1 + 0.5 * h * v1
+                        f1 = f1 + self.per_amp[None, :] * np.sin(self.per_k[None, :] * xm + self.per_phase[None, :])
+                if self.has_dist:
+                    dist = self.dist_a[None, :] * np.sin(self.dist_w[None, :] * (t0 + j * self.dt + (i + 0.5) * h))
+                    f0 = f0 + dist
+                    f1 = f1 + dist
+                engaged = np.ones((W, C), dtype=bool)
+                if has_gap:
+                    rel = x0 - x1
+                    over = (rel > half) & (gap > 0)
+                    under = (rel < -half) & (gap > 0)
+                    push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
+                    f0 = f0 + push
+                    f1 = f1 - push
+                    engaged = over | under | (gap <= 0)
+                d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
+                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
+                k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                As = self.A[cidx, k]  # (W, C, 4, 4)
+                Bs = self.B[cidx, k]  # (W, C, 4, 2)
+                new = np.einsum("wcij,wcj->wci", As, s) + Bs[..., 0] * f0[..., None] + Bs[..., 1] * f1[..., None]
+                for body in (1, 0):
+                    if not self.coulomb[body]:
+                        continue
+                    vi = 2 * body + 1
+                    vf = new[..., vi]
+                    g = Bs[..., vi, body]
+                    positive = vf > 0.0
+                    lim = self._coulomb_limit(body, s[..., vi], positive)
+                    direction = np.where(positive, 1.0, -1.0)
+                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, -direction * lim)
+                    lam = np.where(vf == 0.0, 0.0, lam)
+                    new = new + Bs[..., body] * lam[..., None]
+                    vnew = new[..., vi]
+                    new[..., vi] = np.where(np.abs(vnew) < 1e-15, 0.0, vnew)
+                s = new
+            out[:, :, j] = s[..., 2]
+        return out
+
+
+def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:
+    """RMS over windows and steps of simulated minus measured position, per candidate: (C,)."""
+    err = sim - win.measured[:, None, :]
+    if mask is not None:
+        err = err[mask]
+    return np.sqrt(np.mean(err * err, axis=(0, -1)))
+
+
+def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.ndarray,
+                   rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Relative state (x0 - x1, v0 - v1) of a linearly coupled two-body plant at ``rows``: (len(rows), C).
+
+    Body 0 (the motor side of ``resonance``) carries no friction, so its motion relative to the
+    measured table obeys a linear equation driven by the recorded effort and the measured table
+    acceleration: m0 d'' = f - k d - c d' - m0 a1. Filtering the whole trace through it (exact
+    ZOH discretisation, from rest at row 0) reconstructs the mode's state at every window start:
+    a lightly damped mode rings on from one window into the next, which a start "at rest relative
+    to each other" would miss. ``applied[j]`` and ``table_acc[j]`` act during step j.
+    """
+    from scipy.signal import lfilter, ss2tf
+
+    from drivectl.plant_emulator.models import _discretise
+
+    n = len(applied)
+    out_d = np.zeros((len(rows), len(plants)))
+    out_v = np.zeros((len(rows), len(plants)))
+    for c, p in enumerate(plants):
+        d = p.design
+        m0 = d.bodies[0].mass
+        k, cc = d.coupling.stiffness, d.coupling.damping
+        ac = np.array([[0.0, 1.0], [-k / m0, -cc / m0]])
+        bc = np.array([[0.0], [1.0]])
+        A, B = (np.asarray(x) for x in _discretise(ac, bc, p.dt))
+        u = applied / m0 - table_acc
+        for which, target in ((0, out_d), (1, out_v)):
+            cm = np.zeros((1, 2))
+            cm[0, which] = 1.0
+            num, den = ss2tf(A, B, cm, np.zeros((1, 1)))
+            y = lfilter(num[0], den, u)  # y[j] = state after inputs u[0..j-1]
+            target[:, c] = y[np.clip(rows, 0, n - 1)]
+    return out_d, out_v

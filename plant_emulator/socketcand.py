@@ -325,6 +325,9 @@ class SocketcandServerBus(can.BusABC):
     def _read_client(self, client: _Client) -> None:
         try:
             data = client.sock.recv(65536)
+            if data and hasattr(socket, "TCP_QUICKACK"):
+                # Linux re-enables delayed ACKs after each read; the cycle is request/response, so ACK now
+                client.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_QUICKACK, 1)
         except (BlockingIOError, InterruptedError):
             return
         except OSError as exc:

@@ -116,6 +116,8 @@ class CanopenAxis:
         self._fresh = [False] * len(TPDO_ENTRIES)
         self._raw = [(0, 0), (0, 0)]
         self._arrived = threading.Event()
+        self._last_heartbeat = 0
+        self.heartbeat_state: int | None = None
         self._booted = threading.Event()
         self._connected = False
 
@@ -127,6 +129,9 @@ class CanopenAxis:
         self._configure()
         for i, cob in enumerate(self._tpdo_cob):
             self.network.subscribe(cob, self._tpdo_callback(i))
+        # heartbeat consumer on the master's side: the drive's heartbeat counts in bus cycles
+        self._last_heartbeat = self.clock.cycle
+        self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
         # the state before the first SYNC, so that the first cycle already sends the right command
         self.statusword = self._sdo(cia402.STATUSWORD)
         self.power = cia402.decode_statusword(self.statusword)
@@ -238,10 +243,18 @@ class CanopenAxis:
 
         return on_tpdo
 
+    def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self._last_heartbeat = self.clock.cycle
+        self.heartbeat_state = data[0] if data else None
+
     def read(self) -> Feedback:
         """Next cycle: SYNC (unless another axis of this bus sent it), then this drive's TPDOs."""
         if not self._connected:
             raise AxisError(f"axis {self.name}: not connected")
+        silent_ms = (self.clock.cycle - self._last_heartbeat) * self.dt * 1000.0
+        if self.heartbeat_ms and silent_ms > 3 * self.heartbeat_ms:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: heartbeat lost ({silent_ms:.0f} ms without one, "
+                            f"period {self.heartbeat_ms} ms)")
         if self._cycle == self.clock.cycle:
             self._fresh[:] = [False] * len(self._fresh)
             self._arrived.clear()
@@ -298,6 +311,7 @@ class CanopenAxis:
     def close(self) -> None:
         for cob in self._tpdo_cob:
             self.network.unsubscribe(cob)
+        self.network.unsubscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
         if self._connected:
             try:
                 self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))

@@ -27,6 +27,7 @@ from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     NMT_COB_ID,
     NMT_TRANSITIONS,
+    SDO_ABORT_VALUE_RANGE,
     SYNC_COB_ID,
     NmtCommand,
     NmtState,
@@ -126,7 +127,7 @@ class EmulatedDrive:
 
     # -- SDO hooks -----------------------------------------------------------------------------------
     def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
-        if 0x1400 <= index <= 0x1BFF:
+        if cia402.RPDO_COMM <= index <= cia402.TPDO_MAP + 0x1FF:
             self._mapping_dirty = True  # LocalNode stores the value after this callback
         elif index == cia402.CONTROLWORD:
             self.controlword = struct.unpack("<H", data)[0]
@@ -136,7 +137,7 @@ class EmulatedDrive:
             mode = struct.unpack("<b", data)[0]
             supported = self._od_default(cia402.SUPPORTED_DRIVE_MODES)
             if mode <= 0 or not supported & cia402.supported_mode_bit(cia402.Mode(mode)):
-                raise canopen.SdoAbortedError(0x06090030)  # value range of parameter exceeded
+                raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
             self.mode = mode
         elif index == cia402.QUICK_STOP_OPTION:
             self.drive.quick_stop_option = struct.unpack("<h", data)[0]

@@ -285,3 +285,16 @@ def test_bus_log_with_an_unknown_suffix_is_bad_input(tmp_path, capsys):
                str(tmp_path / "bus.xyz")])
     err = capsys.readouterr().err
     assert rc == 2 and "bus.xyz: unknown log format" in err
+
+
+def test_master_notices_a_lost_heartbeat(bench):
+    drive = bench.drive(1)
+    ax = bench.axis(1)
+    for _ in range(250):
+        ax.read()
+        ax.write(0.0)
+    drive._heartbeat_ms = 0  # the drive stops producing (TPDOs still come)
+    with pytest.raises(AxisError, match="heartbeat lost"):
+        for _ in range(400):
+            ax.read()
+            ax.write(0.0)

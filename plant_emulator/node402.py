@@ -76,6 +76,8 @@ class EmulatedDrive:
         self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
                                 quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION))
         self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(rated_effort * 1000))
+        # one serial number per emulated drive (the EDS default would make every drive look alike)
+        self.node.data_store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", node_id)
         self.nmt = NmtState.INITIALISING
         self.controlword = 0
         self.setpoint = 0  # per mille of the rated effort, as received

@@ -17,6 +17,7 @@ import can
 
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
+from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
 from drivectl.driver.network import (
     Lockstep,
     LockstepNetwork,
@@ -159,3 +160,67 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
         machine.close()
         raise
     return machine
+
+
+@dataclass
+class BusSession:
+    """A master network on the configured bus, without any axis configured on it (scan, status).
+
+    On the virtual bus the machine's emulated drives are created in-process first (booted, as they
+    would be on power-up); elsewhere the drives are whatever answers on the bus."""
+
+    network: Any
+    bus: str
+    drives: dict[str, EmulatedDrive]
+    lockstep: bool
+    _closers: list[Any]
+    #: node id -> NMT state of the latest boot-up or heartbeat seen since the session opened
+    nmt_seen: dict[int, int] = field(default_factory=dict)
+
+    def watch_nmt(self) -> None:
+        for node_id in range(1, 128):
+            self.network.subscribe(HEARTBEAT_BASE + node_id, self._on_heartbeat)
+
+    def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if data:
+            # a boot-up (state byte 0) is followed by Pre-operational, where the node then sits
+            self.nmt_seen[can_id - HEARTBEAT_BASE] = data[0] or int(NmtState.PRE_OPERATIONAL)
+
+    def close(self) -> None:
+        for closer in reversed(self._closers):
+            try:
+                closer()
+            except Exception:  # noqa: BLE001
+                pass
+        self._closers.clear()
+
+    def __enter__(self) -> BusSession:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, float]]] = ()) -> BusSession:
+    b = cfg.bus
+    if b.interface == "virtual":
+        lockstep = Lockstep()
+        channel = unique_virtual_channel(b.channel)
+        emu = LockstepNetwork(open_bus("virtual", channel), lockstep)
+        master = LockstepNetwork(open_bus("virtual", channel), lockstep)
+        session = BusSession(master, f"virtual:{channel} (emulated drives)", {}, True,
+                             [emu.disconnect, master.disconnect])
+        session.watch_nmt()
+        specs = plant_specs(cfg, list(cfg.axes), None, effects)
+        for name, ac in cfg.axes.items():
+            drive = EmulatedDrive(emu, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
+                                  resolution=ac.encoder_m_per_count)
+            session.drives[name] = drive
+        for drive in session.drives.values():
+            drive.boot()
+        return session
+    kwargs: dict[str, Any] = {"host": b.host, "port": b.port} if b.interface == "socketcand" else {}
+    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **kwargs))
+    session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])
+    session.watch_nmt()
+    return session

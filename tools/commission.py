@@ -1,0 +1,274 @@
+"""Commissioning commands: config show / init, scan, status, enable, disable, fault-reset, identify.
+
+Each works on the configured bus: the embedded machine's emulated drives on the virtual bus, or a
+real bus by configuration alone. A drive that does not answer, an SDO abort or a refused state
+change is one line on stderr and exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import canopen
+
+from drivectl.driver import cia402
+from drivectl.driver.cia301 import EMCY_BASE, NmtState
+from drivectl.tools.config import DEFAULT_CONFIG_TOML, ConfigError, load_config
+
+NMT_NAMES = {int(s): s.name.replace("_", "-") for s in NmtState}
+
+
+def add_commission_parsers(sub: Any) -> None:
+    c = sub.add_parser("config", help="show the resolved machine configuration, or write a starter file")
+    csub = c.add_subparsers(dest="config_command", metavar="show|init")
+    csub.required = True
+    csub.add_parser("show", help="print the configuration in use (file, $DRIVECTL_CONFIG or embedded)")
+    ci = csub.add_parser("init", help="write a commented starter configuration")
+    ci.add_argument("file", nargs="?", default="drivectl.toml")
+    ci.add_argument("--force", action="store_true", help="overwrite an existing file")
+
+    s = sub.add_parser("scan", help="list the CANopen nodes on the bus (identity, device name, NMT state)")
+    s.add_argument("--json", action="store_true")
+
+    st = sub.add_parser("status", help="NMT state, CiA 402 power state, mode, error code, position of an axis")
+    st.add_argument("--axis", default=None, help="axis name (default: every axis of the configuration)")
+    st.add_argument("--json", action="store_true")
+
+    for name, what in (("enable", "bring an axis to Operation Enabled"),
+                       ("disable", "bring an axis to Switch On Disabled"),
+                       ("fault-reset", "reset a drive's fault (rising edge of controlword bit 7, verified)")):
+        p = sub.add_parser(name, help=what)
+        p.add_argument("--axis", default="x")
+
+    i = sub.add_parser("identify", help="identify mass and friction of a rigid axis (PID + DOB runs)")
+    i.add_argument("--axis", default="x")
+    i.add_argument("--out", default="traces", metavar="DIR", help="where the identified plant TOML goes")
+    i.add_argument("--sim", action="store_true", help="SimAxis instead of the emulated drive on the bus")
+    i.add_argument("--json", action="store_true")
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    if args.config_command == "init":
+        from drivectl.tools.trace import atomic_write_text
+
+        path = Path(args.file)
+        if path.exists() and not args.force:
+            print(f"drivectl: {path}: exists (use --force to overwrite)", file=sys.stderr)
+            return 2
+        atomic_write_text(path, DEFAULT_CONFIG_TOML)
+        print(f"wrote {path} (use it with: drivectl --config {path} ...)")
+        return 0
+    cfg = load_config(args.config)
+    print(f"# resolved configuration from {cfg.source}")
+    print(f"cycle_s = {cfg.cycle_s}")
+    b = cfg.bus
+    print(f'\n[bus]\ninterface = "{b.interface}"\nchannel = "{b.channel}"\nbitrate = {b.bitrate}')
+    if b.interface == "socketcand":
+        print(f'host = "{b.host}"\nport = {b.port}')
+    for name, ac in cfg.axes.items():
+        lim = ac.limits
+        print(f"\n[axes.{name}]")
+        print(f"node_id = {ac.node_id}\nplant = \"{ac.plant}\"\ncontroller = \"{ac.controller}\"\n"
+              f"profile = \"{ac.profile}\"\nrated_effort = {ac.rated_effort}\n"
+              f"encoder_m_per_count = {ac.encoder_m_per_count:g}\neds = \"{ac.eds}\"")
+        if ac.controller_settings:
+            print(f"[axes.{name}.controller_settings]")
+            for k, v in ac.controller_settings.items():
+                print(f"{k} = {json.dumps(v)}")
+        print(f"[axes.{name}.limits]")
+        if lim.position is not None:
+            print(f"position_m = [{lim.position[0]}, {lim.position[1]}]")
+        print(f"max_effort = {lim.max_effort}\nfollowing_error_m = {lim.following_error}\n"
+              f"following_time_s = {lim.following_time}")
+    return 0
+
+
+def _settle(session: Any, seconds: float) -> None:
+    """Let answers arrive: immediate in lockstep, a short wait on a real bus."""
+    if not session.lockstep:
+        time.sleep(seconds)
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from drivectl.tools.machine import open_bus_session
+
+    cfg = load_config(args.config)
+    with open_bus_session(cfg) as session:
+        net = session.network
+        states = session.nmt_seen
+        net.scanner.reset()
+        net.scanner.search()
+        _settle(session, 0.3)
+        rows = []
+        for node_id in sorted(net.scanner.nodes):
+            node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+            net.add_node(node)
+            row: dict[str, Any] = {"node": node_id}
+            try:
+                row["vendor_id"] = int.from_bytes(node.sdo.upload(cia402.IDENTITY, 1), "little")
+                row["product_code"] = int.from_bytes(node.sdo.upload(cia402.IDENTITY, 2), "little")
+                row["revision"] = int.from_bytes(node.sdo.upload(cia402.IDENTITY, 3), "little")
+                row["serial"] = int.from_bytes(node.sdo.upload(cia402.IDENTITY, 4), "little")
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+                row["error"] = str(exc)
+            try:
+                row["device_name"] = node.sdo.upload(0x1008, 0).decode(errors="replace")
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError):
+                axis = next((n for n, a in cfg.axes.items() if a.node_id == node_id), None)
+                row["device_name"] = (canopen.import_od(cfg.axes[axis].eds).device_information.product_name
+                                      if axis else "?") + " (from the EDS)"
+            row["nmt"] = NMT_NAMES.get(states.get(node_id, -1), "unknown (no heartbeat seen)")
+            rows.append(row)
+        if args.json:
+            print(json.dumps({"bus": session.bus, "nodes": rows}))
+            return 0
+        print(f"bus {session.bus}: {len(rows)} node(s)")
+        print(f"{'node':>4}  {'vendor':>10}  {'product':>10}  {'rev':>10}  {'serial':>10}  {'NMT':<18} device")
+        for r in rows:
+            if "error" in r:
+                print(f"{r['node']:>4}  SDO error: {r['error']}")
+                continue
+            print(f"{r['node']:>4}  0x{r['vendor_id']:08X}  0x{r['product_code']:08X}  0x{r['revision']:08X}  "
+                  f"{r['serial']:>10}  {r['nmt']:<18} {r['device_name']}")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from drivectl.tools.machine import open_bus_session
+
+    cfg = load_config(args.config)
+    names = [args.axis] if args.axis else list(cfg.axes)
+    for n in names:
+        cfg.axis(n)
+    out = {}
+    with open_bus_session(cfg) as session:
+        net = session.network
+        for name in names:
+            ac = cfg.axis(name)
+            emcy: list[bytes] = []
+            net.subscribe(EMCY_BASE + ac.node_id, lambda cob, data, ts, e=emcy: e.append(bytes(data)))
+            node = canopen.RemoteNode(ac.node_id, canopen.import_od(ac.eds, ac.node_id))
+            net.add_node(node)
+            try:
+                sw = node.sdo[cia402.STATUSWORD].raw
+                mode = node.sdo[cia402.MODES_OF_OPERATION_DISPLAY].raw
+                code = node.sdo[cia402.ERROR_CODE].raw
+                counts = node.sdo[cia402.POSITION_ACTUAL].raw
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+                print(f"drivectl: axis {name}: node {ac.node_id}: no answer to SDO ({exc})", file=sys.stderr)
+                return 1
+            _settle(session, 0.3)
+            try:
+                mode_text = cia402.Mode(mode).name
+            except ValueError:
+                mode_text = str(mode)
+            out[name] = {
+                "node": ac.node_id,
+                "nmt": NMT_NAMES.get(session.nmt_seen.get(ac.node_id, -1), "unknown (no heartbeat seen)"),
+                "power_state": cia402.decode_statusword(sw).value,
+                "statusword": f"0x{sw:04X}",
+                "mode": mode_text,
+                "error_code": f"0x{code:04X}",
+                "error": cia402.error_text(code),
+                "position_m": counts * ac.encoder_m_per_count,
+                "last_emcy": emcy[-1].hex() if emcy else None,
+            }
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    for name, s in out.items():
+        print(f"axis {name} (node {s['node']}) on {session.bus}")
+        print(f"  NMT          {s['nmt']}")
+        print(f"  power state  {s['power_state']}  (statusword {s['statusword']})")
+        print(f"  mode         {s['mode']}")
+        print(f"  error        {s['error_code']}: {s['error']}")
+        print(f"  position     {s['position_m'] * 1e3:.6f} mm")
+        print(f"  last EMCY    {s['last_emcy'] or 'none'}")
+    return 0
+
+
+def cmd_power(args: argparse.Namespace) -> int:
+    """enable / disable / fault-reset: set the target, then cycle until the drive reports it."""
+    from drivectl.controllers.servo import STATE_CHANGE_CYCLES
+    from drivectl.driver.cia402 import PowerState
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(args.config)
+    cfg.axis(args.axis)
+    with open_machine(cfg, [args.axis]) as m:
+        ax = m.axes[args.axis]
+        ax.read()
+        ax.write(0.0)
+        want = {"enable": PowerState.OPERATION_ENABLED, "disable": PowerState.SWITCH_ON_DISABLED,
+                "fault-reset": PowerState.SWITCH_ON_DISABLED}[args.command]
+        {"enable": ax.enable, "disable": ax.disable, "fault-reset": ax.fault_reset}[args.command]()
+        for _ in range(STATE_CHANGE_CYCLES):
+            if ax.power is want:
+                break
+            ax.read()
+            ax.write(0.0)
+        if ax.power is not want:
+            print(f"drivectl: axis {args.axis}: still {ax.power.value} after {STATE_CHANGE_CYCLES} cycles "
+                  f"(wanted {want.value})", file=sys.stderr)
+            return 1
+        print(f"axis {args.axis}: {ax.power.value}")
+    return 0
+
+
+def cmd_identify(args: argparse.Namespace) -> int:
+    from drivectl.controllers.pid import PidDob
+    from drivectl.plant_emulator.models import PlantSpec
+    from drivectl.tools.identify import identify_rigid
+    from drivectl.tools.machine import open_machine
+    from drivectl.tools.trace import atomic_write_text
+
+    cfg = load_config(args.config)
+    ac = cfg.axis(args.axis)
+    machines = []
+
+    def axis_factory(start: float):
+        m = open_machine(cfg, [args.axis], sim=args.sim, start={args.axis: start})
+        machines.append(m)
+        return m.axes[args.axis]
+
+    def controller_factory(dt: float):
+        return PidDob.for_plant(dt, {"mass": 100.0}, axis=args.axis if args.axis in ("x", "y") else "x")
+
+    from drivectl.plant_emulator.models import load_plant
+
+    model = load_plant(ac.plant)
+    if model.model != "rigid":
+        raise ConfigError(f"{cfg.source}: axes.{args.axis}.plant: identify fits a rigid axis, {ac.plant} is "
+                          f"{model.model}")
+    t0 = time.perf_counter()
+    try:
+        out = identify_rigid(axis_factory, controller_factory=controller_factory)
+    finally:
+        for m in machines:
+            m.close()
+    seconds = time.perf_counter() - t0
+    keys = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_pos", "fc_neg": "fc_neg"}
+    current = model.params
+    ident = {k: out[k] for k in keys}
+    spec = PlantSpec(name=f"{args.axis}-identified", model="rigid", effort_unit=model.effort_unit,
+                     params={keys[k]: float(v) for k, v in ident.items()})
+    path = Path(args.out) / f"{args.axis}-identified.toml"
+    atomic_write_text(path, spec.to_toml(f"identified by drivectl identify --axis {args.axis} on "
+                                          f"{'SimAxis' if args.sim else cfg.bus.interface}; load with --plant {path}"))
+    rel = {k: ident[k] / current[keys[k]] - 1.0 for k in keys}
+    if args.json:
+        print(json.dumps({"axis": args.axis, "identified": ident, "model": {k: current[keys[k]] for k in keys},
+                          "rel_err": rel, "plant_file": str(path), "seconds": seconds}))
+        return 0
+    units = {"m": "kg", "c_pos": "N s/m", "c_neg": "N s/m", "fc_pos": "N", "fc_neg": "N"}
+    print(f"axis {args.axis}: PID + DOB constant-velocity runs, 5-100 mm/s both ways ({seconds:.1f} s)")
+    print(f"{'parameter':<16} {'identified':>10} {'model':>12} {'difference':>11}")
+    for k in keys:
+        print(f"{k + ' (' + units[k] + ')':<16} {ident[k]:>10.3f} {current[keys[k]]:>12.3f} {100 * rel[k]:>+10.3f} %")
+    print(f"wrote {path}")
+    return 0

@@ -186,6 +186,12 @@ def cmd_trace(args: argparse.Namespace) -> int:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
     _print_summary({n: summarize(tr) for n, tr in result.traces.items()}, result.traces)
+    if "x" in result.traces and "y" in result.traces:
+        from drivectl.tools.metrics import contour_error
+
+        tx, ty = result.traces["x"], result.traces["y"]
+        ce = contour_error(tx.ref, ty.ref, tx.pos, ty.pos)
+        print(f"contour error x-y: max {ce.max() * 1e6:.2f} um, mean {ce.mean() * 1e6:.2f} um")
     if args.bus_log:
         written.append(Path(args.bus_log))
     for p in written:

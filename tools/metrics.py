@@ -91,3 +91,29 @@ def summarize(trace: Trace, electrical: ElectricalModel | None = None) -> dict[s
     if trace.effort_unit in ("N", ""):
         out["electrical_J"] = (electrical or ElectricalModel()).energy(trace.effort, v, dt)
     return out
+
+
+def contour_error(ref_x: np.ndarray, ref_y: np.ndarray, pos_x: np.ndarray, pos_y: np.ndarray,
+                  window: int = 50) -> np.ndarray:
+    """Distance from each measured (x, y) to the reference path, m (the contour error of a two-axis
+    move: what the part sees, unlike the per-axis tracking errors). The path is the reference
+    polyline; each sample looks for its nearest segment within +-``window`` samples of its own time,
+    so a path that crosses itself is not confused."""
+    rx, ry = np.asarray(ref_x, float), np.asarray(ref_y, float)
+    px, py = np.asarray(pos_x, float), np.asarray(pos_y, float)
+    n = len(rx)
+    if n < 2:
+        return np.hypot(px - rx, py - ry)
+    best = np.full(n, np.inf)
+    idx = np.arange(n)
+    for off in range(-window, window):
+        j = np.clip(idx + off, 0, n - 2)
+        ax, ay = rx[j], ry[j]
+        dx, dy = rx[j + 1] - ax, ry[j + 1] - ay
+        seg2 = dx * dx + dy * dy
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.where(seg2 > 0, ((px - ax) * dx + (py - ay) * dy) / seg2, 0.0)
+        u = np.clip(u, 0.0, 1.0)
+        d = np.hypot(px - (ax + u * dx), py - (ay + u * dy))
+        np.minimum(best, d, out=best)
+    return best

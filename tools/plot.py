@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from drivectl.tools.trace import Trace
 
 
@@ -17,7 +19,9 @@ def plot_traces(traces: dict[str, Trace], path: str | Path, title: str = "") -> 
     from drivectl.tools.trace import atomic_write_bytes
 
     names = list(traces)
-    fig, axes = plt.subplots(3, len(names), figsize=(6.5 * len(names), 7.5), sharex="col", squeeze=False)
+    contour = "x" in traces and "y" in traces and len(traces["x"]) == len(traces["y"])
+    rows = 4 if contour else 3
+    fig, axes = plt.subplots(rows, len(names), figsize=(6.5 * len(names), 2.5 * rows), squeeze=False)
     for j, name in enumerate(names):
         tr = traces[name]
         t = tr.time
@@ -34,6 +38,30 @@ def plot_traces(traces: dict[str, Trace], path: str | Path, title: str = "") -> 
         ax_u.set_xlabel("time [s]")
         for ax in (ax_p, ax_e, ax_u):
             ax.grid(True, alpha=0.3)
+    if contour:
+        from drivectl.tools.metrics import contour_error
+
+        tx, ty = traces["x"], traces["y"]
+        ce = contour_error(tx.ref, ty.ref, tx.pos, ty.pos)
+        ax_xy, ax_ce = axes[3][0], axes[3][1]
+        gain = 500.0
+        ax_xy.plot(tx.ref * 1e3, ty.ref * 1e3, lw=1.0, label="reference")
+        # the measured path with its deviation from the reference magnified, else it is invisible
+        ax_xy.plot((tx.ref + gain * (tx.pos - tx.ref)) * 1e3, (ty.ref + gain * (ty.pos - ty.ref)) * 1e3,
+                   lw=0.8, ls="--", label=f"measured, deviation x{gain:g}")
+        ax_xy.set_aspect("equal", adjustable="datalim")
+        ax_xy.set_xlabel("x [mm]")
+        ax_xy.set_ylabel("y [mm]")
+        ax_xy.legend(loc="best", fontsize=8)
+        ax_xy.set_title("contour")
+        ax_ce.plot(tx.time, ce * 1e6, lw=0.8, color="C4")
+        ax_ce.set_xlabel("time [s]")
+        ax_ce.set_ylabel("contour error [um]")
+        ax_ce.set_title(f"contour error: max {ce.max() * 1e6:.2f} um, RMS {np.sqrt(np.mean(ce**2)) * 1e6:.2f} um")
+        for ax in (ax_xy, ax_ce):
+            ax.grid(True, alpha=0.3)
+        for extra in axes[3][2:]:
+            extra.set_visible(False)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -173,33 +173,31 @@ class EmulatedDrive:
         for cob, _layout, _slots in self._rpdos:
             self.network.unsubscribe(cob, self._on_rpdo)
         self._rpdos, self._tpdos = [], []
-        for n in range(4):
-            comm, mapping = cia402.RPDO_COMM + n, cia402.RPDO_MAP + n
-            if comm not in self.od:
-                continue
-            cob = self._value(comm, 1)
-            count = self._value(mapping, 0)
-            if cob & 0x80000000 or count == 0:
-                continue
-            layout = PdoLayout.from_mapping_words(self.od, [self._value(mapping, i + 1) for i in range(count)])
+        for cob, layout in self._enabled_pdos(cia402.RPDO_COMM, cia402.RPDO_MAP):
             offsets, offset = [], 0
             for (index, sub), code in zip(layout.entries, layout.codec.format[1:], strict=True):
                 size = struct.calcsize("<" + code)
                 offsets.append((index, sub, offset, size))
                 offset += size
-            self._rpdos.append((cob & 0x7FF, layout, tuple(offsets)))
-            self.network.subscribe(cob & 0x7FF, self._on_rpdo)
+            self._rpdos.append((cob, layout, tuple(offsets)))
+            self.network.subscribe(cob, self._on_rpdo)
+        self._tpdos = self._enabled_pdos(cia402.TPDO_COMM, cia402.TPDO_MAP)
+        self._mapping_dirty = False
+
+    def _enabled_pdos(self, comm_base: int, map_base: int) -> list[tuple[int, PdoLayout]]:
+        """(COB-ID, layout) of every valid PDO of one direction, from the object dictionary."""
+        out = []
         for n in range(4):
-            comm, mapping = cia402.TPDO_COMM + n, cia402.TPDO_MAP + n
+            comm, mapping = comm_base + n, map_base + n
             if comm not in self.od:
                 continue
             cob = self._value(comm, 1)
             count = self._value(mapping, 0)
-            if cob & 0x80000000 or count == 0:
+            if cob & 0x80000000 or count == 0:  # bit 31: PDO not valid
                 continue
-            layout = PdoLayout.from_mapping_words(self.od, [self._value(mapping, i + 1) for i in range(count)])
-            self._tpdos.append((cob & 0x7FF, layout))
-        self._mapping_dirty = False
+            words = [self._value(mapping, i + 1) for i in range(count)]
+            out.append((cob & 0x7FF, PdoLayout.from_mapping_words(self.od, words)))
+        return out
 
     def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
         if self.nmt is not NmtState.OPERATIONAL:

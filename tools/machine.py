@@ -117,19 +117,25 @@ def open_machine(
             machine.drives[name] = drive
             machine._closers.append(drive.close)
             drive.boot()
-        clock = SyncClock(master_net)
-        for name in names:
-            ac = cfg.axis(name)
-            axis = CanopenAxis(master_net, ac.node_id, name=name, dt=dt, effort_unit=specs[name].effort_unit,
-                               eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
-                               effort_scale=EffortScale(ac.rated_effort), clock=clock)
-            axis.connect()
-            machine.axes[name] = axis
-            machine._closers.append(axis.close)
+        _connect_masters(machine, master_net, cfg, names, specs)
     except BaseException:
         machine.close()
         raise
     return machine
+
+
+def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
+                     specs: dict[str, PlantSpec]) -> None:
+    """One CanopenAxis per axis on ``net``, sharing one SYNC clock; each booted and configured."""
+    clock = SyncClock(net)
+    for name in names:
+        ac = cfg.axis(name)
+        axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
+                           eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
+                           effort_scale=EffortScale(ac.rated_effort), clock=clock)
+        axis.connect()
+        machine.axes[name] = axis
+        machine._closers.append(axis.close)
 
 
 def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, PlantSpec],
@@ -147,15 +153,7 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     if bus_log:
         net.notifier.add_listener(can.Logger(bus_log))
     try:
-        clock = SyncClock(net)
-        for name in names:
-            ac = cfg.axis(name)
-            axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
-                               eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
-                               effort_scale=EffortScale(ac.rated_effort), clock=clock)
-            axis.connect()
-            machine.axes[name] = axis
-            machine._closers.append(axis.close)
+        _connect_masters(machine, net, cfg, names, specs)
     except BaseException:
         machine.close()
         raise

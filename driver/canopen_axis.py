@@ -21,7 +21,16 @@ import canopen
 
 from drivectl.driver import cia402
 from drivectl.driver.axis import AxisError, Feedback
-from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_COB_ID, RPDO_BASE, SYNC_COB_ID, TPDO_BASE, NmtCommand
+from drivectl.driver.cia301 import (
+    HEARTBEAT_BASE,
+    MASTER_NODE_ID,
+    NMT_COB_ID,
+    RPDO_BASE,
+    SYNC_COB_ID,
+    TPDO_BASE,
+    NmtCommand,
+    NmtState,
+)
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
@@ -45,16 +54,20 @@ class Identity:
 
 
 class SyncClock:
-    """The SYNC producer of one bus, shared by its axes."""
+    """The SYNC producer of one bus, shared by its axes; also the master's heartbeat producer
+    (node ``MASTER_NODE_ID``, every ``heartbeat_cycles`` SYNCs), which the drives consume (0x1016)."""
 
-    def __init__(self, network: canopen.Network, cob_id: int = SYNC_COB_ID):
+    def __init__(self, network: canopen.Network, cob_id: int = SYNC_COB_ID, heartbeat_cycles: int = 100):
         self.network = network
         self.cob_id = cob_id
         self.cycle = 0
+        self.heartbeat_cycles = heartbeat_cycles
 
     def tick(self) -> None:
         self.network.send_message(self.cob_id, b"")
         self.cycle += 1
+        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 0:
+            self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
 
 
 class CanopenAxis:
@@ -194,6 +207,11 @@ class CanopenAxis:
         self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
         self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
         self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
+        # the drive watches the master's heartbeat (0x1016) and reacts per 0x6007 when it stops;
+        # allow three periods of the master's heartbeat before it counts as lost
+        master_ms = round(self.clock.heartbeat_cycles * self.dt * 1000)
+        if master_ms:
+            self._sdo(cia402.CONSUMER_HEARTBEAT_TIME, 1, value=(MASTER_NODE_ID << 16) | min(3 * master_ms, 0xFFFF))
         try:
             self._map_pdos()
         except canopen.SdoAbortedError as exc:

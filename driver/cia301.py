@@ -12,6 +12,7 @@ RPDO_BASE = (0x200, 0x300, 0x400, 0x500)
 SDO_TX_BASE = 0x580  # server -> client
 SDO_RX_BASE = 0x600  # client -> server
 HEARTBEAT_BASE = 0x700
+MASTER_NODE_ID = 0x7F  # drivectl's own heartbeat (0x77F), consumed by the drives
 SDO_ABORT_VALUE_RANGE = 0x06090030  # value range of parameter exceeded
 
 

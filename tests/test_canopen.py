@@ -298,3 +298,15 @@ def test_master_notices_a_lost_heartbeat(bench):
         for _ in range(400):
             ax.read()
             ax.write(0.0)
+
+
+def test_master_heartbeat_is_configured_on_the_drive_and_produced(bench):
+    bench.drive(1)
+    ax = bench.axis(1)
+    assert ax.node.sdo[cia402.CONSUMER_HEARTBEAT_TIME][1].raw == (0x7F << 16) | 300
+    beats = []
+    bench.emu.subscribe(HEARTBEAT_BASE + 0x7F, lambda cob, data, ts: beats.append(bytes(data)))
+    for _ in range(250):
+        ax.read()
+        ax.write(0.0)
+    assert beats == [bytes([NmtState.OPERATIONAL])] * 2

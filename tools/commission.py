@@ -220,41 +220,53 @@ def cmd_power(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_identify(args: argparse.Namespace) -> int:
+IDENTIFY_KEYS = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_pos", "fc_neg": "fc_neg"}
+
+
+def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
+    """Run the identification on axis ``name`` of ``cfg`` (emulated drive on the bus, or SimAxis);
+    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI."""
     from drivectl.controllers.pid import PidDob
-    from drivectl.plant_emulator.models import PlantSpec
+    from drivectl.plant_emulator.models import load_plant
     from drivectl.tools.identify import identify_rigid
     from drivectl.tools.machine import open_machine
-    from drivectl.tools.trace import atomic_write_text
 
-    cfg = load_config(args.config)
-    ac = cfg.axis(args.axis)
+    ac = cfg.axis(name)
+    model = load_plant(ac.plant)
+    if model.model != "rigid":
+        raise ConfigError(f"{cfg.source}: axes.{name}.plant: identify fits a rigid axis, {ac.plant} is {model.model}")
     machines = []
 
     def axis_factory(start: float):
-        m = open_machine(cfg, [args.axis], sim=args.sim, start={args.axis: start})
+        m = open_machine(cfg, [name], sim=sim, start={name: start})
         machines.append(m)
-        return m.axes[args.axis]
+        return m.axes[name]
 
     def controller_factory(dt: float):
-        return PidDob.for_plant(dt, {"mass": 100.0}, axis=args.axis if args.axis in ("x", "y") else "x")
+        # the loop's nominal mass is a rough guess on purpose: the result does not depend on it
+        return PidDob.for_plant(dt, {"mass": 100.0}, axis=name if name in ("x", "y") else "x")
 
-    from drivectl.plant_emulator.models import load_plant
-
-    model = load_plant(ac.plant)
-    if model.model != "rigid":
-        raise ConfigError(f"{cfg.source}: axes.{args.axis}.plant: identify fits a rigid axis, {ac.plant} is "
-                          f"{model.model}")
-    t0 = time.perf_counter()
     try:
         out = identify_rigid(axis_factory, controller_factory=controller_factory)
     finally:
         for m in machines:
             m.close()
-    seconds = time.perf_counter() - t0
-    keys = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_pos", "fc_neg": "fc_neg"}
+    return {"identified": {k: float(out[k]) for k in IDENTIFY_KEYS},
+            "model": {k: model.params[v] for k, v in IDENTIFY_KEYS.items()}, "spec": model}
+
+
+def cmd_identify(args: argparse.Namespace) -> int:
+    from drivectl.plant_emulator.models import PlantSpec
+    from drivectl.tools.trace import atomic_write_text
+
+    cfg = load_config(args.config)
+    t0 = time.perf_counter()
+    result = identify_axis(cfg, args.axis, sim=args.sim)
+    keys = IDENTIFY_KEYS
+    model = result["spec"]
+    ident = result["identified"]
     current = model.params
-    ident = {k: out[k] for k in keys}
+    seconds = time.perf_counter() - t0
     spec = PlantSpec(name=f"{args.axis}-identified", model="rigid", effort_unit=model.effort_unit,
                      params={keys[k]: float(v) for k, v in ident.items()})
     path = Path(args.out) / f"{args.axis}-identified.toml"

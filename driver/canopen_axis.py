@@ -66,7 +66,9 @@ class SyncClock:
     def tick(self) -> None:
         self.network.send_message(self.cob_id, b"")
         self.cycle += 1
-        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 0:
+        # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
+        # that died before its first one would leave the drive unwatched
+        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 1:
             self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
 
 

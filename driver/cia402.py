@@ -238,6 +238,9 @@ ERROR_TEXT = {
 }
 
 
+HEARTBEAT_LOST_ERROR = 0x8130
+
+
 def error_text(code: int) -> str:
     if code in ERROR_TEXT:
         return ERROR_TEXT[code]

@@ -18,6 +18,7 @@ Time is simulated: the plant advances exactly one cycle per SYNC, never by wall 
 from __future__ import annotations
 
 import struct
+import time
 from pathlib import Path
 
 import canopen
@@ -85,6 +86,10 @@ class EmulatedDrive:
         self._sync_cob = SYNC_COB_ID
         self._heartbeat_cycles = 0
         self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
+        self._consumer: tuple[int, int] | None = None  # master node id, timeout ms (0x1016 sub 1)
+        self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION)
+        self._master_seen: float | None = None
+        self.master_lost = False
         self._rpdos: list[tuple[int, PdoLayout, tuple[tuple[int, int, int], ...]]] = []
         self._tpdos: list[tuple[int, PdoLayout]] = []
         self._mapping_dirty = True
@@ -143,6 +148,12 @@ class EmulatedDrive:
             self.mode = mode
         elif index == cia402.QUICK_STOP_OPTION:
             self.drive.quick_stop_option = struct.unpack("<h", data)[0]
+        elif index == cia402.CONSUMER_HEARTBEAT_TIME and subindex == 1:
+            value = struct.unpack("<I", data)[0]
+            self._consumer = ((value >> 16) & 0x7F, value & 0xFFFF)  # (master node id, timeout ms)
+            self.network.subscribe(HEARTBEAT_BASE + self._consumer[0], self._on_master_heartbeat)
+        elif index == cia402.ABORT_CONNECTION_OPTION:
+            self._abort_option = struct.unpack("<h", data)[0]
         elif index == cia402.PRODUCER_HEARTBEAT_TIME:
             self._heartbeat_ms = struct.unpack("<H", data)[0]
             self._heartbeat_cycles = 0  # restart the count with the new period
@@ -213,6 +224,32 @@ class EmulatedDrive:
                     self.controlword = value
                 elif index == cia402.TARGET_TORQUE:
                     self.setpoint = value
+
+    def _on_master_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self._master_seen = time.monotonic()
+        self.master_lost = False
+
+    def check_master(self, now: float | None = None) -> bool:
+        """Heartbeat consumer on the wall clock, called by the emulator's receive loop: when the
+        master's heartbeat stops (a dead master sends no SYNC either, so simulated time would stand
+        still), react per 0x6007: 1 fault, 2 disable voltage, 3 quick stop (zero torque both ways).
+        Returns True when it reacted now."""
+        if self._consumer is None or self._master_seen is None or self.master_lost or not self._consumer[1]:
+            return False
+        now = time.monotonic() if now is None else now
+        if (now - self._master_seen) * 1000.0 <= self._consumer[1]:
+            return False
+        self.master_lost = True
+        d = self.drive
+        if self._abort_option == 1:
+            d.fault(cia402.HEARTBEAT_LOST_ERROR)
+            d.power = cia402.PowerState.FAULT
+        elif self._abort_option in (2, 3) and d.power in (cia402.PowerState.OPERATION_ENABLED,
+                                                          cia402.PowerState.QUICK_STOP_ACTIVE):
+            d.power = cia402.PowerState.SWITCH_ON_DISABLED  # torque mode: quick stop ends at zero torque at once
+            d.applied = 0.0
+            d.error_code = cia402.HEARTBEAT_LOST_ERROR
+        return True
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         d = self.drive

@@ -272,8 +272,9 @@ def test_bus_log_reads_back_with_the_sync_pdo_sequence(tmp_path, suffix, capsys)
     ids = [m.arbitration_id for m in can.LogReader(str(log))]
     assert ids[0] == HEARTBEAT_BASE + 1  # the drive's boot-up
     assert NMT_COB_ID in ids and 0x601 in ids and 0x581 in ids  # NMT, SDO configuration
+    assert HEARTBEAT_BASE + 0x7F in ids  # the master's own heartbeat, from the first SYNC
     first_sync = ids.index(0x80)
-    cyclic = ids[first_sync:first_sync + 4 * 21]
+    cyclic = [i for i in ids[first_sync:] if not HEARTBEAT_BASE <= i < HEARTBEAT_BASE + 0x80][:4 * 21]
     # every cycle: SYNC, then the drive's two TPDOs, then the master's RPDO
     assert cyclic == [0x80, 0x181, 0x281, 0x201] * 21
 
@@ -309,4 +310,4 @@ def test_master_heartbeat_is_configured_on_the_drive_and_produced(bench):
     for _ in range(250):
         ax.read()
         ax.write(0.0)
-    assert beats == [bytes([NmtState.OPERATIONAL])] * 2
+    assert beats == [bytes([NmtState.OPERATIONAL])] * 3  # SYNC 1, 101, 201

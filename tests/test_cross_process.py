@@ -111,3 +111,26 @@ def test_emulate_effect_trace_explain_end_to_end(tmp_path):
     assert res.params["amplitude"] == pytest.approx(12.0, rel=0.25)
     assert res.params["period"] == pytest.approx(0.01, rel=0.25)
     assert res.gap_after < 0.2 * res.gap_before
+
+
+def test_killed_master_the_drive_stops_on_its_own(tmp_path):
+    """Issue 7 point 5 (second half): SIGKILL the master mid-trace; the emulated drive consumes the
+    master's heartbeat (0x1016, 300 ms) and stops per 0x6007 (quick stop) by itself."""
+    emu = Emulator(tmp_path, "--slcan", profile="circle")
+    try:
+        tty = re.search(r"(/dev/\S+)", emu.line).group(1)
+        cfg_path = tmp_path / "master.toml"
+        cfg_path.write_text(AXIS_X.format(bus=f'interface = "slcan"\nchannel = "{tty}"', profile="circle"))
+        master = subprocess.Popen(
+            [sys.executable, "-m", "drivectl", "--config", str(cfg_path), "trace", "--axis", "x", "--duration", "600",
+             "--out", str(tmp_path), "--quiet", "--no-plot"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        line = master.stderr.readline()
+        assert line.startswith("trace: axis x"), line
+        master.kill()
+        master.wait(30)
+        reaction = emu.proc.stderr.readline()  # printed by the emulator when it reacts
+    finally:
+        err = emu.stop()
+    assert "master heartbeat lost: drive stopped (Switch On Disabled, 0x603F = 0x8130)" in reaction, reaction + err

@@ -99,7 +99,12 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     print(f"point a master at it with: {hint}", flush=True)
     try:
         while not stop:
-            msg = bus.recv(0.1)
+            msg = bus.recv(0.01)
+            for drive in drives:
+                if drive.check_master():
+                    print(f"node {drive.node_id}: master heartbeat lost: drive stopped "
+                          f"({drive.drive.power.value}, 0x603F = 0x{drive.drive.error_code:04X})",
+                          file=sys.stderr, flush=True)
             if msg is None:
                 continue
             if log is not None:

@@ -67,11 +67,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
     from drivectl.tools.emulate import add_emulate_parser
     from drivectl.tools.explain import add_explain_parser
 
     add_commission_parsers(sub)
+    add_bode_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
 
@@ -107,6 +109,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             handler = {"config": commission.cmd_config, "scan": commission.cmd_scan,
                        "status": commission.cmd_status, "identify": commission.cmd_identify}
             return handler.get(args.command, commission.cmd_power)(args)
+        if args.command == "bode":
+            from drivectl.tools.bode import cmd_bode
+
+            return cmd_bode(args)
         if args.command == "explain":
             from drivectl.tools.explain import cmd_explain
 

@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_commission_parsers(sub)
     add_bode_parser(sub)
+    from drivectl.tools.tune import add_tune_parser
+
+    add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
 
@@ -109,6 +112,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             handler = {"config": commission.cmd_config, "scan": commission.cmd_scan,
                        "status": commission.cmd_status, "identify": commission.cmd_identify}
             return handler.get(args.command, commission.cmd_power)(args)
+        if args.command == "tune":
+            from drivectl.tools.tune import cmd_tune
+
+            return cmd_tune(args)
         if args.command == "bode":
             from drivectl.tools.bode import cmd_bode
 

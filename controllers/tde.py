@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 
 from drivectl.controllers.base import SCALAR_OPS, Controller, Settings, choice, param
+from drivectl.driver.axis import Feedback
+from drivectl.profiles.base import Reference
 
 
 @dataclass
@@ -117,3 +119,22 @@ class TdeController(Controller):
         u = self._m * (u_c - acc) + self._u1
         self._u1 = u
         return u
+
+
+class LinearSurfaceTde(TdeController):
+    """TDE with the linear surface s = c e + e' (eq 5, e = x_d - x), so that
+    ``u_c = x_d'' + c e' + R(s)`` for the reaching law R of the subclass (SMC eq 12, VPRL eq 13):
+    the two baselines differ only there."""
+
+    def step(self, reference: Reference, feedback: Feedback) -> Any:
+        x = feedback.position
+        v = feedback.velocity
+        acc = self._accel(x, v)
+        c = self.settings.c
+        ed = reference.velocity - v
+        s = c * (reference.position - x) + ed
+        return self._tde(reference.acceleration + c * ed + self._reaching(s), acc)
+
+    def _reaching(self, s: Any) -> Any:
+        """-s' of the reaching law: what drives s to 0."""
+        raise NotImplementedError

@@ -17,9 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivectl.controllers.base import param
-from drivectl.controllers.tde import TdeController, TdeSettings
-from drivectl.driver.axis import Feedback
-from drivectl.profiles.base import Reference
+from drivectl.controllers.tde import LinearSurfaceTde, TdeSettings
 
 
 @dataclass
@@ -37,21 +35,13 @@ class SmcSettings(TdeSettings):
     eps2: Any = param(1.0, lo=0.0, lo_open=True, unit="m/s^2", doc="switching reaching gain, eq (12)")
 
 
-class TdeSmc(TdeController):
+class TdeSmc(LinearSurfaceTde):
     """TDE + linear sliding surface (5) + exponential reaching law (12); effort in V."""
 
     name = "smc"
     origin = "paper 000"
     SettingsClass = SmcSettings
 
-    def step(self, reference: Reference, feedback: Feedback) -> Any:
+    def _reaching(self, s: Any) -> Any:
         st = self.settings
-        x = feedback.position
-        v = feedback.velocity
-        acc = self._accel(x, v)
-        e = reference.position - x
-        ed = reference.velocity - v
-        c = st.c
-        s = c * e + ed
-        u_c = reference.acceleration + c * ed + st.eps1 * s + st.eps2 * self.ops.sign(s)
-        return self._tde(u_c, acc)
+        return st.eps1 * s + st.eps2 * self.ops.sign(s)  # eq (12)

@@ -20,9 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivectl.controllers.base import param
-from drivectl.controllers.tde import TdeController, TdeSettings
-from drivectl.driver.axis import Feedback
-from drivectl.profiles.base import Reference
+from drivectl.controllers.tde import LinearSurfaceTde, TdeSettings
 
 
 @dataclass
@@ -41,24 +39,16 @@ class VprlSettings(TdeSettings):
     r2: Any = param(0.7, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="power for |s| < 1, eq (13)")
 
 
-class TdeVprl(TdeController):
+class TdeVprl(LinearSurfaceTde):
     """TDE + linear sliding surface (5) + variable-power reaching law (13); effort in V."""
 
     name = "vprl"
     origin = "paper 000"
     SettingsClass = VprlSettings
 
-    def step(self, reference: Reference, feedback: Feedback) -> Any:
+    def _reaching(self, s: Any) -> Any:
         st = self.settings
         o = self.ops
-        x = feedback.position
-        v = feedback.velocity
-        acc = self._accel(x, v)
-        e = reference.position - x
-        ed = reference.velocity - v
-        c = st.c
-        s = c * e + ed
         # eq (13)'s two branches differ only in the power: pick it, then one sig() serves both
         r = o.where(o.abs(s) >= 1.0, st.r1, st.r2)
-        u_c = reference.acceleration + c * ed + st.alpha1 * o.sig(s, r) + st.alpha2 * o.asinh(s)
-        return self._tde(u_c, acc)
+        return st.alpha1 * o.sig(s, r) + st.alpha2 * o.asinh(s)

@@ -25,6 +25,11 @@ class AxisError(RuntimeError):
     """An axis cannot do what was asked (not enabled, fault active, transport lost)."""
 
 
+class AxisConfigError(AxisError):
+    """The drive or its description refused the configuration before anything moved (an EDS
+    without a required object, an SDO abort while configuring): bad input, not a fault."""
+
+
 @runtime_checkable
 class Axis(Protocol):
     """A feed axis driven by an effort setpoint once per cycle.

@@ -20,7 +20,7 @@ from pathlib import Path
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import AxisError, Feedback
+from drivectl.driver.axis import AxisConfigError, AxisError, Feedback
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     MASTER_NODE_ID,
@@ -107,10 +107,10 @@ class CanopenAxis:
         try:
             od = canopen.import_od(str(eds), node_id)
         except Exception as exc:  # canopen raises many types for a bad file
-            raise AxisError(f"axis {name}: EDS {eds}: cannot be read: {exc}") from None
+            raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {exc}") from None
         missing = [f"0x{i:04X}" for i in cia402.REQUIRED_OBJECTS if i not in od]
         if missing:
-            raise AxisError(f"axis {name}: EDS {eds}: missing required object(s) {', '.join(missing)}")
+            raise AxisConfigError(f"axis {name}: EDS {eds}: missing required object(s) {', '.join(missing)}")
         self.od = od
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
@@ -183,11 +183,11 @@ class CanopenAxis:
             var.raw = value
             return value
         except canopen.SdoAbortedError as exc:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None
         except canopen.SdoCommunicationError as exc:
             raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}") from None
         except KeyError:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
 
     def _check_identity(self) -> None:
         vendor = self._sdo(cia402.IDENTITY, 1)
@@ -217,7 +217,7 @@ class CanopenAxis:
         try:
             self._map_pdos()
         except canopen.SdoAbortedError as exc:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
         mode = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
         if mode != cia402.Mode.CYCLIC_SYNC_TORQUE:
             raise AxisError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, expected 10 (CST)")

@@ -94,13 +94,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
-    from drivectl.driver.axis import AxisError
+    from drivectl.driver.axis import AxisConfigError, AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.trace import TraceError
 
-    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError)
+    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError)
     try:
         if args.command == "trace":
             return cmd_trace(args)

@@ -7,7 +7,13 @@ Safety is part of the loop, not an option: before anything moves the profile is 
 soft limits and the axis must sit where the profile starts; every cycle the command is clipped to the
 effort limit, and a position outside the soft limits or a following error outside its window for
 longer than its time ends the run in quick stop, with the trace kept and the reason recorded. Ctrl-C
-(KeyboardInterrupt) ends the same way.
+(KeyboardInterrupt) ends the same way. So does every fault: the drive leaving Operation Enabled (a
+drive fault: statusword bit 3), an implausible position step (faster than ``max_speed``), and what
+the axis itself detects (:class:`~drivectl.driver.axis.AxisError` with its kind: lost TPDOs, a lost
+heartbeat, an unexpected boot-up, a bus error). The quick stop goes out in the very cycle of the
+detection; the cycles until each drive reports a safe state (Switch On Disabled, Quick Stop Active,
+or Fault: torque off in all three) are counted, and the fault (kind, cycle, statusword, 0x603F text)
+goes into the trace metadata.
 """
 
 from __future__ import annotations
@@ -20,8 +26,8 @@ from enum import Enum
 import numpy as np
 
 from drivectl.controllers.base import Controller
-from drivectl.driver.axis import Axis, AxisError
-from drivectl.driver.cia402 import PowerState
+from drivectl.driver.axis import Axis, AxisError, FaultKind
+from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits
 from drivectl.tools.trace import Trace, format_value
 
@@ -31,6 +37,7 @@ class StopReason(Enum):
     FOLLOWING_ERROR = "following error"
     SOFT_LIMIT = "soft position limit"
     INTERRUPTED = "interrupted"
+    FAULT = "fault"
     AXIS_ERROR = "axis error"
 
 
@@ -46,6 +53,7 @@ class Limits:
     max_effort: float = math.inf  # the command is clipped to +-max_effort
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
+    max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
 
     def __post_init__(self) -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
@@ -56,6 +64,36 @@ class Limits:
             raise ValueError(f"limits: following_error: must be > 0, got {self.following_error}")
         if not self.following_time >= 0:
             raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
+        if not self.max_speed > 0:
+            raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
+
+
+#: power states with the torque off: where a stop must end
+SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT,
+               PowerState.FAULT_REACTION_ACTIVE)
+
+
+@dataclass
+class Fault:
+    """What ended a run other than completion, and how the axes came to rest."""
+
+    kind: str  # a FaultKind value, or "interrupted"
+    axis: str
+    cycle: int  # trace row of the detection
+    detail: str
+    statusword: int | None = None  # of the faulted axis, after the stop
+    error_code: int | None = None  # its 0x603F, after the stop (None: could not be read)
+    safe_after: dict[str, int | None] = field(default_factory=dict)  # cycles to a safe state (None: unknown)
+    safe_state: dict[str, str] = field(default_factory=dict)
+
+    def meta(self) -> dict[str, str]:
+        out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
+        if self.statusword is not None:
+            stale = self.safe_state.get(self.axis) == "unknown"
+            out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
+        out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
+                              else "unknown (0x603F could not be read)")
+        return out
 
 
 @dataclass
@@ -67,6 +105,7 @@ class RunResult:
     detail: str = ""
     cycles: int = 0
     clipped: dict[str, int] = field(default_factory=dict)
+    fault: Fault | None = None
 
     @property
     def trace(self) -> Trace:
@@ -89,6 +128,7 @@ class Channel:
     meta: Mapping[str, object] = field(default_factory=dict)
     #: first cycle of the current excursion outside the following-error window
     following_since: int | None = field(default=None, init=False, repr=False)
+    last_position: float | None = field(default=None, init=False, repr=False)
 
 
 def run(
@@ -141,6 +181,9 @@ def run_channels(
     rec = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in channels]
     clipped = [0] * len(channels)
     stop, detail, k_done = StopReason.COMPLETED, "", 0
+    fault: Fault | None = None
+    counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in channels]
+    enabled = PowerState.OPERATION_ENABLED
 
     for ch in channels:
         ch.controller.reset()
@@ -154,7 +197,15 @@ def run_channels(
             if pacer is not None:
                 pacer.wait(k)
             for i, ch in enumerate(channels):
-                fb = ch.axis.read()
+                try:
+                    fb = ch.axis.read()
+                except AxisError as exc:
+                    fault = Fault((exc.kind or FaultKind.DRIVE_STOPPED).value if exc.kind else "axis error",
+                                  ch.axis.name, k, str(exc))
+                    raise
+                if ch.axis.power is not enabled:
+                    fault = _left_operation(ch, k)
+                    raise AxisError(fault.detail, FaultKind(fault.kind))
                 pr, vr, ar, jr = refs[i]
                 pos = fb.position
                 ref = Reference(pr[k], vr[k], ar[k], jr[k])
@@ -169,7 +220,8 @@ def run_channels(
                 r["effort"][k] = u
                 reason = _violation(ch, k, dt, pos, pr[k])
                 if reason is not None:
-                    stop, detail = reason
+                    stop, kind, detail = reason
+                    fault = Fault(kind.value, ch.axis.name, k, detail)
                     raise _Stop
                 ch.axis.write(u)
             k_done = k + 1
@@ -179,13 +231,16 @@ def run_channels(
                 bar.update(min(250, n - bar.n))
     except _Stop:
         k_done = k + 1
-        _safe_stop(channels)
+        _safe_stop(channels, fault)
     except KeyboardInterrupt:
         stop, detail = StopReason.INTERRUPTED, "interrupted (KeyboardInterrupt: Ctrl-C or a signal)"
-        _safe_stop(channels)
+        fault = Fault("interrupted", channels[0].axis.name, k, detail)
+        _safe_stop(channels, fault)
     except AxisError as exc:
-        stop, detail = StopReason.AXIS_ERROR, str(exc)
-        _safe_stop(channels)
+        stop, detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
+        if fault is None:  # raised by the bring-up or by a write
+            fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, detail)
+        _safe_stop(channels, fault)
     finally:
         if bar is not None:
             bar.close()
@@ -222,8 +277,17 @@ def run_channels(
             meta["stop_detail"] = detail
         if clipped[i]:
             meta["effort_clipped_cycles"] = str(clipped[i])
+        for key, value in getattr(ch.axis, "counters", {}).items():
+            meta[key] = str(value - counters0[i].get(key, 0))
+        if fault is not None:
+            meta.update(fault.meta())
+            name = ch.axis.name
+            meta["safe_state"] = fault.safe_state.get(name, "unknown")
+            after = fault.safe_after.get(name)
+            meta["safe_after_cycles"] = "unknown" if after is None else str(after)
         traces[ch.axis.name] = Trace(cols, meta)
-    return RunResult(traces, stop, detail, k_done, {ch.axis.name: c for ch, c in zip(channels, clipped, strict=True)})
+    return RunResult(traces, stop, detail, k_done, {ch.axis.name: c for ch, c in zip(channels, clipped, strict=True)},
+                     fault)
 
 
 class Pacer:
@@ -270,24 +334,49 @@ def _check_profile(ch: Channel, until: float) -> None:
         except ProfileError as exc:
             raise LimitError(f"axis {ch.axis.name}: {exc}; nothing moved") from None
     ch.following_since = None
+    ch.last_position = None
 
 
-def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, str] | None:
+def _left_operation(ch: Channel, k: int) -> Fault:
+    """The drive is no longer in Operation Enabled though the master keeps asking for it."""
+    axis = ch.axis
+    power = axis.power
+    if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+        emcy = getattr(axis, "last_emcy", None)
+        code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
+        return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
+                     f"statusword 0x{getattr(axis, 'statusword', 0):04X}{code})")
+    return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
+                 f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
+
+
+def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
+    text = str(exc)
+    return next((ch.axis.name for ch in channels if text.startswith(f"axis {ch.axis.name}:")), channels[0].axis.name)
+
+
+def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, FaultKind, str] | None:
     lim = ch.limits
     name = ch.axis.name
+    last, ch.last_position = ch.last_position, pos
+    if last is not None and k and abs(pos - last) > lim.max_speed * dt:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
+            f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
-        return StopReason.SOFT_LIMIT, f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s"
+        return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
+            f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
     err = ref - pos
     if err > lim.following_error or err < -lim.following_error:
         since = ch.following_since
         if since is None:
             since = ch.following_since = k
         if k == 0:
-            return StopReason.FOLLOWING_ERROR, (
+            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
                 f"axis {name}: at {pos:.6f} m but the profile starts at {ref:.6f} m; nothing moved"
             )
         if (k - since) * dt >= lim.following_time:
-            return StopReason.FOLLOWING_ERROR, (
+            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
                 f"axis {name}: following error {err * 1e6:.1f} um beyond the {lim.following_error * 1e6:.0f} um "
                 f"window at t={k * dt:.3f} s"
             )
@@ -321,22 +410,76 @@ def _bring_up(channels: Sequence[Channel]) -> None:
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {STATE_CHANGE_CYCLES} cycles")
 
 
-def _safe_stop(channels: Sequence[Channel]) -> None:
-    """Quick stop, then disable, every axis, cycling until the drives report it; keep going if one
-    of them fails (the others must still be stopped)."""
-    safe = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT)
-    for action, done in ((lambda ax: ax.quick_stop(), lambda ax: ax.power in safe),
-                         (lambda ax: ax.disable(), lambda ax: ax.power is not PowerState.OPERATION_ENABLED
-                          and ax.power is not PowerState.QUICK_STOP_ACTIVE)):
+def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
+    """Quick stop now (the command goes out in this very cycle), then disable; cycle until every
+    drive reports a safe state, counting the cycles (into ``fault``), and go on when an axis fails:
+    the others must still be stopped. Where the TPDOs no longer bring the statusword, it is read by
+    SDO; where nothing answers, the state stays unknown (the drive's own watchdogs take over)."""
+    for ch in channels:
+        _quietly(ch.axis.quick_stop)
+        _quietly(ch.axis.write, 0.0)
+    safe_after: dict[str, int | None] = {}
+    for ch in channels:
+        if ch.axis.power in SAFE_STATES:
+            safe_after[ch.axis.name] = 0
+    for j in range(1, STATE_CHANGE_CYCLES + 1):
+        if len(safe_after) == len(channels):
+            break
+        if not _stop_cycle(channels):
+            break  # nothing answers: the drives' own watchdogs must stop them
         for ch in channels:
-            try:
-                action(ch.axis)
-            except Exception:  # noqa: BLE001 - the other axes must still be stopped
-                pass
+            if ch.axis.name not in safe_after and ch.axis.power in SAFE_STATES:
+                safe_after[ch.axis.name] = j
+    for ch in channels:
+        if ch.axis.power is not PowerState.FAULT:
+            _quietly(ch.axis.disable)
+    for _ in range(STATE_CHANGE_CYCLES):
+        if all(ch.axis.power not in _STILL_CHANGING for ch in channels):
+            break
+        if not _stop_cycle(channels):
+            break
+    if fault is not None:
+        for ch in channels:
+            fault.safe_after[ch.axis.name] = safe_after.get(ch.axis.name)
+            fault.safe_state[ch.axis.name] = ch.axis.power.value if ch.axis.name in safe_after else "unknown"
+        faulted = next((ch.axis for ch in channels if ch.axis.name == fault.axis), None)
+        if faulted is not None:
+            fault.statusword = getattr(faulted, "statusword", None)
+            code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None
+            if code is None and getattr(faulted, "last_emcy", None):
+                code = faulted.last_emcy[0]
+            fault.error_code = code
+
+
+#: states a stopping drive passes through (Fault Reaction Active ends in Fault at the next cycle)
+_STILL_CHANGING = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
+
+
+def _stop_cycle(channels: Sequence[Channel]) -> bool:
+    """One zero-effort cycle of every axis during a stop; False when no axis could be cycled."""
+    alive = False
+    for ch in channels:
+        axis = ch.axis
         try:
-            _cycle_until(channels, done)
-        except Exception:  # noqa: BLE001 - a dead transport cannot be cycled; nothing more to do here
+            axis.read()
+            alive = True
+            if getattr(axis, "lost_cycles", 0) and hasattr(axis, "refresh_state"):
+                _quietly(axis.refresh_state)  # a bridged sample carries a stale statusword: ask by SDO
+        except AxisError:
+            # no sample (TPDOs gone): ask the drive by SDO
+            if hasattr(axis, "refresh_state") and _quietly(axis.refresh_state) is not None:
+                alive = True
+        except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
             pass
+        _quietly(axis.write, 0.0)
+    return alive
+
+
+def _quietly(fn: Callable[..., object], *args: object) -> object:
+    try:
+        return fn(*args)
+    except Exception:  # noqa: BLE001 - stopping goes on whatever one call raises
+        return None
 
 
 def _progress(n: int, enabled: bool):

@@ -7,6 +7,7 @@ per-mille exist only inside the transports.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 from typing import Protocol, runtime_checkable
 
 from drivectl.driver.cia402 import PowerState
@@ -21,8 +22,27 @@ class Feedback:
     velocity: float  # m/s, as the drive reports it (0x606C on a CiA 402 drive)
 
 
+class FaultKind(Enum):
+    """What the master detected; the value is what traces and messages say."""
+
+    TPDO_TIMEOUT = "tpdo timeout"
+    DRIVE_FAULT = "drive fault"
+    DRIVE_STOPPED = "drive left Operation Enabled"
+    HEARTBEAT_LOST = "heartbeat lost"
+    UNEXPECTED_BOOT = "unexpected boot-up"
+    BUS_ERROR = "bus error"
+    IMPLAUSIBLE_POSITION = "implausible position"
+    FOLLOWING_ERROR = "following error"
+    SOFT_LIMIT = "soft position limit"
+
+
 class AxisError(RuntimeError):
-    """An axis cannot do what was asked (not enabled, fault active, transport lost)."""
+    """An axis cannot do what was asked (not enabled, fault active, transport lost); ``kind`` says
+    which fault was detected, when it was one."""
+
+    def __init__(self, message: str, kind: FaultKind | None = None):
+        super().__init__(message)
+        self.kind = kind
 
 
 class AxisConfigError(AxisError):

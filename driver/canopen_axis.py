@@ -9,6 +9,13 @@ takes two cycles, a fault reset is a rising edge of bit 7 verified by the next s
 
 Several axes on one bus share one :class:`SyncClock`: the first axis to read in a new cycle sends
 the SYNC, the others read what it brought.
+
+Faults it detects (each raised once as :class:`AxisError` with its :class:`FaultKind`): more than
+``max_lost_cycles`` cycles in a row without the TPDOs (one lost or late cycle is bridged by
+extrapolating the last sample, and counted); the drive's heartbeat silent for three periods; a
+boot-up message from the drive while connected (it reset by itself); python-can raising on send or
+receive (bus error, bus-off). A drive fault arrives as the statusword (and EMCY, kept in
+``last_emcy``); the servo loop reacts to the power state.
 """
 
 from __future__ import annotations
@@ -17,10 +24,11 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import can
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import AxisConfigError, AxisError, Feedback
+from drivectl.driver.axis import AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     MASTER_NODE_ID,
@@ -64,8 +72,8 @@ class SyncClock:
         self.heartbeat_cycles = heartbeat_cycles
 
     def tick(self) -> None:
+        self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
         self.network.send_message(self.cob_id, b"")
-        self.cycle += 1
         # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
         # that died before its first one would leave the drive unwatched
         if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 1:
@@ -90,7 +98,9 @@ class CanopenAxis:
         identity: Identity | None = None,
         heartbeat_ms: int = 100,
         timeout: float = 2.0,
+        tpdo_timeout: float = 0.1,
         max_lost_cycles: int = 3,
+        rpdo_timeout_ms: int | None = None,
     ):
         self.name = name
         self.dt = dt
@@ -100,9 +110,14 @@ class CanopenAxis:
         self.encoder = encoder
         self.scale = effort_scale
         self.clock = clock or SyncClock(network)
-        self.timeout = timeout
+        self.timeout = timeout  # boot-up and SDO answers
+        self.tpdo_timeout = tpdo_timeout  # a cycle's TPDOs, across processes (in lockstep they are there at once)
         self.heartbeat_ms = heartbeat_ms
+        if max_lost_cycles < 0:
+            raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
         self.max_lost_cycles = max_lost_cycles
+        # the drive's RPDO deadline (0x1400:05): two cycles unless configured
+        self.rpdo_timeout_ms = round(2 * dt * 1000) if rpdo_timeout_ms is None else rpdo_timeout_ms
         self.lockstep = isinstance(network, LockstepNetwork)
         try:
             od = canopen.import_od(str(eds), node_id)
@@ -116,13 +131,19 @@ class CanopenAxis:
             od.device_information.vendor_number, od.device_information.product_number)
         self.node = canopen.RemoteNode(node_id, od)
         network.add_node(self.node)
+        self.node.emcy.add_callback(self._on_emcy)
         self.master = MasterStateMachine(PowerState.SWITCH_ON_DISABLED)
         self.power = PowerState.NOT_READY_TO_SWITCH_ON
         self.statusword = 0
         self.error_code = 0
         self.lost_cycles = 0
         self.lost_total = 0
+        self.late_total = 0
+        self.last_emcy: tuple[int, int] | None = None  # (error code, cycle)
+        self._rebooted = False
+        self._last = Feedback(0.0, 0.0, 0.0)
         self._cycle = self.clock.cycle
+        self._consumed = self.clock.cycle  # the cycle whose TPDOs the last read() used
         self._controlword = 0
         self._rpdo_cob = RPDO_BASE[0] + node_id
         self._rpdo = PdoLayout.from_entries(od, RPDO_ENTRIES)
@@ -151,6 +172,11 @@ class CanopenAxis:
         self.statusword = self._sdo(cia402.STATUSWORD)
         self.power = cia402.decode_statusword(self.statusword)
         self._controlword = self.master.controlword(self.power)
+        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(
+            self._sdo(cia402.POSITION_ACTUAL)), 0.0)
+        self.lost_cycles = 0
+        self._rebooted = False
+        self._consumed = self.clock.cycle
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
         self._connected = True
 
@@ -188,6 +214,8 @@ class CanopenAxis:
             raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}") from None
         except KeyError:
             raise AxisConfigError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
+        except can.CanError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}", FaultKind.BUS_ERROR) from None
 
     def _check_identity(self) -> None:
         vendor = self._sdo(cia402.IDENTITY, 1)
@@ -236,6 +264,8 @@ class CanopenAxis:
                     pdo.cob_id = base[n - 1] + self.node_id
                     pdo.trans_type = 1  # synchronous, every SYNC
                     pdo.enabled = True
+                    if maps is node.rpdo and 5 in pdo.com_record.od:
+                        pdo.event_timer = self.rpdo_timeout_ms  # the drive's deadline on our RPDO
                 else:
                     pdo.enabled = False
                 pdo.save()
@@ -256,6 +286,9 @@ class CanopenAxis:
         raw = self._raw
 
         def on_tpdo(can_id: int, data: bytes, timestamp: float) -> None:
+            if self._consumed == self.clock.cycle:
+                self.late_total += 1  # for a cycle already used: too late, dropped
+                return
             raw[i] = codec.unpack_from(data)
             fresh[i] = True
             if all(fresh):
@@ -266,42 +299,92 @@ class CanopenAxis:
     def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
         self._last_heartbeat = self.clock.cycle
         self.heartbeat_state = data[0] if data else None
+        if data[:1] == b"\x00" and self._connected:
+            self._rebooted = True  # a boot-up while we run the drive: it reset by itself
+
+    def _on_emcy(self, entry: canopen.emcy.EmcyError) -> None:
+        self.last_emcy = (entry.code, self.clock.cycle)
 
     def read(self) -> Feedback:
         """Next cycle: SYNC (unless another axis of this bus sent it), then this drive's TPDOs."""
         if not self._connected:
             raise AxisError(f"axis {self.name}: not connected")
-        silent_ms = (self.clock.cycle - self._last_heartbeat) * self.dt * 1000.0
-        if self.heartbeat_ms and silent_ms > 3 * self.heartbeat_ms:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: heartbeat lost ({silent_ms:.0f} ms without one, "
-                            f"period {self.heartbeat_ms} ms)")
         if self._cycle == self.clock.cycle:
             self._fresh[:] = [False] * len(self._fresh)
             self._arrived.clear()
-            self.clock.tick()
-        self._cycle = self.clock.cycle
+            try:
+                self.clock.tick()
+            except can.CanError as exc:
+                raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
+        self._cycle = cycle = self.clock.cycle
         if not all(self._fresh) and not self.lockstep:
-            self._arrived.wait(self.timeout)
-        if all(self._fresh):
+            self._arrived.wait(self.tpdo_timeout)
+        self._consumed = cycle
+        if self._rebooted:
+            self._rebooted = False
+            raise AxisError(f"axis {self.name}: node {self.node_id}: unexpected boot-up (the drive reset by itself; "
+                            "its configuration is lost)", FaultKind.UNEXPECTED_BOOT)
+        silent_ms = (cycle - self._last_heartbeat) * self.dt * 1000.0
+        if self.heartbeat_ms and silent_ms > 3 * self.heartbeat_ms:
+            self._last_heartbeat = cycle  # raised once; the stop that follows must still cycle
+            raise AxisError(f"axis {self.name}: node {self.node_id}: heartbeat lost ({silent_ms:.0f} ms without one, "
+                            f"period {self.heartbeat_ms} ms)", FaultKind.HEARTBEAT_LOST)
+        fresh = self._fresh
+        if all(fresh):
             self.lost_cycles = 0
-        else:
-            # hold the last sample once; more than max_lost_cycles in a row is a fault
-            self.lost_cycles += 1
-            self.lost_total += 1
-            if self.lost_cycles > self.max_lost_cycles:
-                raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles")
-        for i in range(len(self._fresh)):
-            self._fresh[i] = False
-        (sw, counts), (vel_counts, _torque) = self._raw
-        self.statusword = sw
-        self.power = cia402.decode_statusword(sw)
+            for i in range(len(fresh)):
+                fresh[i] = False
+            (sw, counts), (vel_counts, _torque) = self._raw
+            self.statusword = sw
+            self.power = cia402.decode_statusword(sw)
+            self._controlword = self.master.controlword(self.power)
+            enc = self.encoder
+            fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
+            return fb
+        # no (complete) sample: bridge the cycle by extrapolating the last one; too many in a row is a fault
+        self.lost_cycles += 1
+        self.lost_total += 1
+        for i in range(len(fresh)):
+            fresh[i] = False
+        if self.lost_cycles > self.max_lost_cycles:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
+                            f"(limit {self.max_lost_cycles})", FaultKind.TPDO_TIMEOUT)
+        last = self._last
+        fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * self.dt, last.velocity)
+        return fb
+
+    def refresh_state(self) -> PowerState:
+        """The power state by SDO (0x6041), when the TPDOs do not bring it."""
+        self.statusword = self._sdo(cia402.STATUSWORD)
+        self.power = cia402.decode_statusword(self.statusword)
         self._controlword = self.master.controlword(self.power)
+        return self.power
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Cycles bridged for lack of TPDOs and TPDO frames that came too late (cumulative)."""
+        return {"tpdo_lost_cycles": self.lost_total, "tpdo_late_frames": self.late_total}
+
+    def drive_limits(self) -> dict[str, object]:
+        """The limits the drive holds (0x6065/0x6066 following error, 0x607D software position limits),
+        in SI; a window of 0xFFFFFFFF, and position limits that are equal or span all of int32, mean "none"."""
         enc = self.encoder
-        return Feedback((self._cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
+        out: dict[str, object] = {}
+        window = self._sdo(cia402.FOLLOWING_ERROR_WINDOW)
+        if window != 0xFFFFFFFF:
+            out["following_error"] = enc.from_counts(window)
+            out["following_time"] = self._sdo(cia402.FOLLOWING_ERROR_TIMEOUT) / 1000.0
+        lo, hi = self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 1), self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 2)
+        if lo < hi and (lo, hi) != (-0x80000000, 0x7FFFFFFF):  # the whole int32 range: no limits set
+            out["position"] = (enc.from_counts(lo), enc.from_counts(hi))
+        return out
 
     def write(self, effort: float) -> None:
-        self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
-                                                                           self.scale.to_permille(effort)))
+        try:
+            self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
+                                                                               self.scale.to_permille(effort)))
+        except can.CanError as exc:
+            raise AxisError(f"axis {self.name}: RPDO not sent: {exc}", FaultKind.BUS_ERROR) from None
 
     # -- power state targets (reached through the following cycles) ----------------------------------
     def enable(self) -> None:
@@ -325,6 +408,7 @@ class CanopenAxis:
         self._controlword = self.master.controlword(self.power)
 
     def read_error_code(self) -> int:
+        """0x603F by SDO."""
         self.error_code = self._sdo(cia402.ERROR_CODE)
         return self.error_code
 

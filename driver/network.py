@@ -76,20 +76,32 @@ class LockstepNetwork(canopen.Network):
         lockstep.networks.append(self)
         self._recv = bus.recv
         self.log: can.Listener | None = None
+        self.recv_error: can.CanError | None = None
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
         if self.log is not None:
             self.log.on_message_received(_logged(can_id, data, remote, rx=False))
         self.lockstep.settle()
+        if self.recv_error is not None:
+            exc, self.recv_error = self.recv_error, None
+            raise exc
 
     def pump(self) -> bool:
-        """Deliver the frames waiting on this network's bus; True if there were any."""
+        """Deliver the frames waiting on this network's bus; True if there were any. A bus that raises
+        on receive keeps the error for its own next send (another node's send must not fail for it)."""
         got = False
         recv = self._recv
         notify = self.notify
         log = self.log
-        while (msg := recv(0)) is not None:
+        while True:
+            try:
+                msg = recv(0)
+            except can.CanError as exc:
+                self.recv_error = exc
+                return False
+            if msg is None:
+                break
             got = True
             if log is not None:
                 log.on_message_received(msg)

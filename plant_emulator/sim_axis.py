@@ -15,7 +15,7 @@ the same master state machine choosing the controlword, and the same transport-e
 from __future__ import annotations
 
 from drivectl.driver.axis import AxisError, Feedback
-from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.cia402 import MasterStateMachine, PowerState, encode_statusword
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
 from drivectl.plant_emulator.drive import DriveModel
 from drivectl.plant_emulator.models import Plant, PlantState
@@ -58,6 +58,15 @@ class SimAxis:
     @property
     def power(self) -> PowerState:
         return self.drive.power
+
+    @property
+    def statusword(self) -> int:
+        power = self.drive.power
+        return encode_statusword(power, follows=power is PowerState.OPERATION_ENABLED)
+
+    def read_error_code(self) -> int:
+        """0x603F of the drive."""
+        return self.drive.error_code
 
     # -- cycle ---------------------------------------------------------------------------------
     def read(self) -> Feedback:

@@ -123,7 +123,9 @@ class SlcanAdapterBus(can.BusABC):
         self.btr: str | None = None
         self.overruns = 0
 
-        self._rx: queue.SimpleQueue[can.Message | _Shutdown] = queue.SimpleQueue()
+        # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) can block for ever when a signal
+        # (SIGTERM to `drivectl emulate`) interrupts it just before its deadline
+        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue()
         self._wlock = threading.Lock()  # guards _pending and every write to the master
         self._pending = bytearray()
         self._inbuf = bytearray()

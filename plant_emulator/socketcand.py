@@ -110,7 +110,9 @@ class SocketcandServerBus(can.BusABC):
         self._client_ready = threading.Condition(self._lock)
         self._client: _Client | None = None
         self._waiting: tuple[socket.socket, float] | None = None
-        self._rx: queue.SimpleQueue[can.Message | _Shutdown] = queue.SimpleQueue()
+        # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) can block for ever when a signal
+        # (SIGTERM to `drivectl emulate`) interrupts it just before its deadline
+        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue()
         self._stopping = False
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)

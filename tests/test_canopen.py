@@ -11,7 +11,7 @@ import pytest
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.servo import run
 from drivectl.driver import cia402
-from drivectl.driver.axis import AxisError
+from drivectl.driver.axis import AxisError, FaultKind
 from drivectl.driver.canopen_axis import CanopenAxis, Identity, SyncClock
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NmtCommand, NmtState
 from drivectl.driver.cia402 import Command, PowerState
@@ -170,11 +170,15 @@ def test_nmt_reset_gives_boot_up_and_stops_the_tpdos(bench):
     bench.master.subscribe(HEARTBEAT_BASE + 1, lambda cob, data, ts: seen.append(bytes(data)))
     bench.master.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, 1]))
     assert seen == [b"\x00"] and drive.nmt is NmtState.PRE_OPERATIONAL
-    ax.read()  # held once (no TPDO in Pre-operational) ...
+    with pytest.raises(AxisError, match="unexpected boot-up") as info:
+        ax.read()  # the boot-up of a drive the master runs is a fault of its own, raised once
+    assert info.value.kind is FaultKind.UNEXPECTED_BOOT
+    ax.read()  # then bridged once (no TPDO in Pre-operational) ...
     for _ in range(ax.max_lost_cycles - 1):
         ax.read()
-    with pytest.raises(AxisError, match="no TPDO for 4 cycles"):
+    with pytest.raises(AxisError, match="no TPDO for 4 cycles") as info:
         ax.read()  # ... and then a fault
+    assert info.value.kind is FaultKind.TPDO_TIMEOUT
 
 
 def test_heartbeat_in_simulated_time(bench):

@@ -1,8 +1,10 @@
 """The `drivectl` command line.
 
-Exit codes: 0 done; 1 the run was stopped by a limit or an axis error (trace kept); 2 bad input
-(one line on stderr naming the file and the key); 130 / 143 interrupted by SIGINT / SIGTERM (the
-axis quick-stopped and disabled, the trace kept).
+Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
+bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
+ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
+position; axis stopped, trace kept with the fault in its metadata); 130 / 143 interrupted by SIGINT /
+SIGTERM (the axis quick-stopped and disabled, the trace kept).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from pathlib import Path
 
 from drivectl import __version__
 
-EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
 
 
 class _Terminated(KeyboardInterrupt):
@@ -66,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--sim", action="store_true",
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
+                   help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
+                   "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -95,12 +100,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
     from drivectl.driver.axis import AxisConfigError, AxisError
+    from drivectl.plant_emulator.faults import FaultSpecError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.trace import TraceError
 
-    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError)
+    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
+                 FaultSpecError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -147,6 +154,7 @@ def cmd_trace(args: argparse.Namespace) -> int:
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, run_channels
     from drivectl.plant_emulator.effects import parse_effect
+    from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
     from drivectl.profiles.library import load_profile
     from drivectl.tools.config import ConfigError, load_config
     from drivectl.tools.machine import open_machine, plant_specs
@@ -156,6 +164,12 @@ def cmd_trace(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     names = [a.strip() for a in args.axis.split(",") if a.strip()]
     effects = [parse_effect(text) for text in args.effect]
+    faults = [parse_fault(text) for text in args.fault] if args.fault else None
+    for f in faults or ():
+        if f.kind == "master-dead":
+            raise FaultSpecError(f"--fault {f}: this process is the master; kill it instead (kill -9: the "
+                                 "drive stops by itself per 0x6007), or inject it on the drive side: "
+                                 "drivectl emulate --fault")
     profiles = {name: load_profile(args.profile or cfg.axis(name).profile, axis=name) for name in names}
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
     controllers = {}
@@ -169,15 +183,25 @@ def cmd_trace(args: argparse.Namespace) -> int:
         raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
-                           bus_log=args.bus_log)
+                           bus_log=args.bus_log, faults=faults)
     channels = []
-    for name in names:
-        ac = cfg.axis(name)
-        meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                "config": cfg.source}
-        if effects:
-            meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
-        channels.append(Channel(machine.axes[name], controllers[name], profiles[name], ac.limits, meta))
+    try:
+        for name in names:
+            ac = cfg.axis(name)
+            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
+                    "config": cfg.source}
+            if effects:
+                meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
+            if faults:
+                meta["injected"] = "; ".join(str(f) for f in faults)
+            axis = machine.axes[name]
+            # limits the configuration leaves out come from the drive (0x6065/0x6066, 0x607D)
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
+                axis, "drive_limits") else ac.limits
+            channels.append(Channel(axis, controllers[name], profiles[name], limits, meta))
+    except BaseException:
+        machine.close()
+        raise
 
     previous = signal.signal(signal.SIGTERM, _on_sigterm)
     _signals_seen.clear()
@@ -188,6 +212,8 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
         result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
                               progress=not args.quiet and sys.stderr.isatty())
+        if machine.master_bus is not None and machine.master_bus.mode == "off":
+            machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         signal.signal(signal.SIGTERM, previous)
         machine.close()
@@ -205,6 +231,11 @@ def cmd_trace(args: argparse.Namespace) -> int:
         tx, ty = result.traces["x"], result.traces["y"]
         ce = contour_error(tx.ref, ty.ref, tx.pos, ty.pos)
         print(f"contour error x-y: max {ce.max() * 1e6:.2f} um, mean {ce.mean() * 1e6:.2f} um")
+    for name, tr in result.traces.items():
+        lost, late = int(tr.meta.get("tpdo_lost_cycles", "0")), int(tr.meta.get("tpdo_late_frames", "0"))
+        if lost or late:
+            print(f"{name}: {lost} cycle(s) without TPDOs bridged by extrapolation, {late} late TPDO frame(s) "
+                  "dropped (counted in the trace)")
     if args.bus_log:
         written.append(Path(args.bus_log))
     for p in written:
@@ -214,6 +245,14 @@ def cmd_trace(args: argparse.Namespace) -> int:
         print(f"drivectl: interrupted by {name} after {result.cycles} cycles; axis quick-stopped and disabled, "
               "trace kept", file=sys.stderr)
         return 143 if name == "SIGTERM" else 130
+    if result.fault is not None and result.stop is StopReason.FAULT:
+        f = result.fault
+        state = ", ".join(f"{n} {s}" + (f" after {f.safe_after[n]} cycle(s)" if f.safe_after.get(n) is not None
+                                        else " to the master (no answer: the drive's own watchdogs stop it)")
+                          for n, s in f.safe_state.items())
+        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped ({state}), trace kept",
+              file=sys.stderr)
+        return EXIT_FAULT
     if not result.ok:
         print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
         return EXIT_STOPPED

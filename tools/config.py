@@ -11,7 +11,8 @@ from __future__ import annotations
 import math
 import os
 import tomllib
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,13 +37,17 @@ plant = "rigid-x"               # built-in plant name or a plant TOML file
 controller = "asmc"             # smc | vprl | pid-nftsm | asmc | pid | pid-dob
 profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
+max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
+rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): it stops by itself; 0 = off
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
 [axes.x.limits]
+# position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits
 max_effort = 2000.0             # N, the command is clipped here
 following_error_m = 0.001       # window
 following_time_s = 0.01
+max_speed_m_s = 2.0             # a position step faster than this between two samples is implausible
 
 [axes.y]
 node_id = 2
@@ -108,6 +113,15 @@ class AxisConfig:
     node_id: int = 1
     rated_effort: float = 100.0
     eds: str = DEFAULT_EDS
+    max_lost_cycles: int = 3  # consecutive cycles without TPDOs bridged before it is a fault
+    rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: two cycles
+    #: limits the file left out: taken from the drive (0x6065/0x6066, 0x607D) when it has them
+    limits_from_drive: frozenset[str] = frozenset()
+
+    def limits_with(self, drive: Mapping[str, Any]) -> Limits:
+        """The configured limits, completed by what the drive holds for the keys the file left out."""
+        taken = {k: v for k, v in drive.items() if k in self.limits_from_drive}
+        return replace(self.limits, **taken) if taken else self.limits
 
 
 @dataclass(frozen=True)
@@ -187,7 +201,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -200,7 +214,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         lim_raw = raw.get("limits", {})
         if not isinstance(lim_raw, dict):
             raise ConfigError(f"{src}: {k}.limits: expected a table")
-        lim_extra = set(lim_raw) - {"position_m", "max_effort", "following_error_m", "following_time_s"}
+        lim_extra = set(lim_raw) - {"position_m", "max_effort", "following_error_m", "following_time_s",
+                                    "max_speed_m_s"}
         if lim_extra:
             raise ConfigError(f"{src}: {k}.limits.{sorted(lim_extra)[0]}: unknown key")
         position = lim_raw.get("position_m")
@@ -221,7 +236,10 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
                 src, f"{k}.limits.following_error_m", lim_raw.get("following_error_m", 5e-3), positive=True
             ),
             following_time=_number(src, f"{k}.limits.following_time_s", lim_raw.get("following_time_s", 0.0)),
+            max_speed=_number(src, f"{k}.limits.max_speed_m_s", lim_raw.get("max_speed_m_s", 2.0), positive=True),
         )
+        from_drive = {"position": "position_m", "following_error": "following_error_m",
+                      "following_time": "following_time_s"}
         axes[name] = AxisConfig(
             name=name,
             plant=_string(src, f"{k}.plant", raw["plant"]),
@@ -235,11 +253,21 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             node_id=_node_id(src, f"{k}.node_id", raw.get("node_id", len(axes) + 1)),
             rated_effort=_number(src, f"{k}.rated_effort", raw.get("rated_effort", 100.0), positive=True),
             eds=_string(src, f"{k}.eds", raw.get("eds", DEFAULT_EDS)),
+            max_lost_cycles=_count(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
+            rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
+            if "rpdo_timeout_ms" in raw else None,
+            limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
         )
     ids = [a.node_id for a in axes.values()]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"{src}: axes: two axes share a node_id ({sorted(ids)})")
     return MachineConfig(src, cycle, axes, bus)
+
+
+def _count(src: str, key: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
+        raise ConfigError(f"{src}: {key}: expected an integer 0..65535, got {value!r}")
+    return value
 
 
 def _node_id(src: str, key: str, value: Any) -> int:

@@ -10,6 +10,10 @@ at them. Without kernel CAN the emulator is itself the adapter:
 
 The plant advances one cycle per SYNC received (simulated time), so a run across processes gives
 the same trace as the lockstep virtual bus, bit for bit.
+
+``--fault [AXIS/]KIND[:k=v,...]@TIME`` breaks a drive on cue (plant_emulator/faults.py) for the
+master at the other end to detect; ``master-dead`` makes the emulator stop hearing the master (as if
+it had died), bus-error and bus-off need the master's own bus (``drivectl trace --fault``).
 """
 
 from __future__ import annotations
@@ -39,10 +43,13 @@ def add_emulate_parser(sub: Any) -> None:
     e.add_argument("--noise", type=float, default=0.0, help="force noise std (effort units)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--bus-log", metavar="FILE", help="record every frame (python-can Logger, format by suffix)")
+    e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
+                   help="inject a fault TIME s after the drive is enabled (repeatable; see README, Faults)")
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
     from drivectl.plant_emulator.effects import parse_effect
+    from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
     from drivectl.plant_emulator.node402 import EmulatedDrive
     from drivectl.profiles.library import load_profile
     from drivectl.tools.config import load_config
@@ -52,6 +59,14 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     names = [a.strip() for a in args.axis.split(",")] if args.axis else list(cfg.axes)
     effects = [parse_effect(t) for t in args.effect]
     specs = plant_specs(cfg, names, args.plant, effects)
+    faults = [parse_fault(t) for t in args.fault]
+    for f in faults:
+        if f.kind in ("bus-error", "bus-off"):
+            raise FaultSpecError(f"--fault {f}: acts on the master's bus, which is in the other process "
+                                 "(inject it with drivectl trace --fault on the virtual bus)")
+        if f.axis is not None and f.axis not in names:
+            raise FaultSpecError(f"--fault {f}: axis {f.axis!r} is not emulated here ({', '.join(names)})")
+    injectors = {name: FaultInjector([f for f in faults if (f.axis or names[0]) == name]) for name in names}
     if args.slcan:
         from drivectl.plant_emulator.slcan import SlcanAdapterBus
 
@@ -81,7 +96,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
         start = load_profile(ac.profile, axis=name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
-                              initial_position=start)
+                              initial_position=start, faults=injectors[name] if faults else None)
         drives.append(drive)
     stop = []
     signal.signal(signal.SIGTERM, lambda *a: stop.append(signal.SIGTERM))
@@ -107,6 +122,8 @@ def cmd_emulate(args: argparse.Namespace) -> int:
                           file=sys.stderr, flush=True)
             if msg is None:
                 continue
+            if any(inj.deaf for inj in injectors.values()):
+                continue  # master-dead injected: nothing from the master reaches the drives any more
             if log is not None:
                 log.on_message_received(msg)
             if not msg.is_error_frame:

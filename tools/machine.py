@@ -5,6 +5,12 @@ of the configuration (plant + effects) on one in-process python-can virtual chan
 master for each, in lockstep; with ``sim=True`` the same plants behind SimAxis with no bus. Both
 quantise the effort to per mille of the rated effort and the position to encoder counts, so the
 two give the same trace bit for bit.
+
+``faults=[...]`` (virtual bus only) arms fault injection: each drive gets a
+:class:`~drivectl.plant_emulator.faults.FaultInjector` and the master's bus a
+:class:`~drivectl.plant_emulator.faults.FaultyBus`, so tests, benches and ``drivectl trace --fault``
+can break the axis on cue; :meth:`Machine.let_drives_run` lets the drives' own clocks run on when the
+master has stopped sending (it died, its bus went off).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from drivectl.driver.network import (
     unique_virtual_channel,
 )
 from drivectl.driver.units import EffortScale, Encoder
+from drivectl.plant_emulator.faults import FaultInjector, FaultSpec, FaultSpecError, FaultyBus
 from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
 from drivectl.plant_emulator.sim_axis import SimAxis
@@ -42,7 +49,25 @@ class Machine:
     specs: dict[str, PlantSpec]
     bus: str
     drives: dict[str, EmulatedDrive] = field(default_factory=dict)
+    injectors: dict[str, FaultInjector] = field(default_factory=dict)
+    master_bus: FaultyBus | None = None
     _closers: list[Any] = field(default_factory=list)
+
+    def let_drives_run(self, cycles: int, until_safe: bool = False) -> dict[str, int | None]:
+        """Run the emulated drives' own clocks ``cycles`` cycles with nothing from the master (physical
+        time goes on after the master stopped sending). Returns, per drive, the first of those cycles
+        at which its torque was off (None: not within ``cycles``)."""
+        from drivectl.controllers.servo import SAFE_STATES
+
+        safe: dict[str, int | None] = {n: (0 if d.drive.power in SAFE_STATES else None) for n, d in self.drives.items()}
+        for j in range(1, cycles + 1):
+            if until_safe and all(v is not None for v in safe.values()):
+                break
+            for name, drive in self.drives.items():
+                drive.idle()
+                if safe[name] is None and drive.drive.power in SAFE_STATES:
+                    safe[name] = j
+        return safe
 
     def close(self) -> None:
         for closer in reversed(self._closers):
@@ -81,9 +106,17 @@ def open_machine(
     noise: float = 0.0,
     seed: int = 0,
     bus_log: str | None = None,
+    faults: Sequence[FaultSpec] | None = None,
 ) -> Machine:
     """The axes ``names`` of ``cfg``, each starting at ``start[name]`` (m); ``bus_log`` records every
-    frame to a file (python-can Logger, format by suffix)."""
+    frame to a file (python-can Logger, format by suffix); ``faults`` arms fault injection (a spec
+    without an axis goes to the first axis)."""
+    if faults is not None and (sim or cfg.bus.interface != "virtual"):
+        raise FaultSpecError("--fault: faults are injected into the emulated drives of the virtual bus (not with "
+                             "--sim or another bus; across processes use drivectl emulate --fault)")
+    for spec in faults or ():
+        if spec.axis is not None and spec.axis not in names:
+            raise FaultSpecError(f"--fault {spec}: axis {spec.axis!r} is not in this run ({', '.join(names)})")
     start = start or {}
     specs = plant_specs(cfg, names, plant, effects)
     dt = cfg.cycle_s
@@ -104,16 +137,23 @@ def open_machine(
     machine = Machine({}, specs, f"virtual:{channel} (emulated CiA 402 drives, lockstep)")
     emu_net = LockstepNetwork(open_bus("virtual", channel), lockstep)
     machine._closers.append(emu_net.disconnect)
-    master_net = LockstepNetwork(open_bus("virtual", channel), lockstep)
+    master_bus = open_bus("virtual", channel)
+    if faults is not None:
+        master_bus = machine.master_bus = FaultyBus(master_bus)
+    master_net = LockstepNetwork(master_bus, lockstep)
     machine._closers.append(master_net.disconnect)
     if bus_log:
         attach_bus_log(master_net, bus_log)
     try:
         for i, name in enumerate(names):
             ac = cfg.axis(name)
+            injector = None
+            if faults is not None:
+                mine = [f for f in faults if (f.axis or names[0]) == name]
+                injector = machine.injectors[name] = FaultInjector(mine, bus=machine.master_bus)
             drive = EmulatedDrive(emu_net, ac.node_id, specs[name].build(dt), rated_effort=ac.rated_effort,
                                   resolution=ac.encoder_m_per_count, force_noise=noise, seed=seed + i,
-                                  initial_position=start.get(name, 0.0))
+                                  initial_position=start.get(name, 0.0), faults=injector)
             machine.drives[name] = drive
             machine._closers.append(drive.close)
             drive.boot()
@@ -132,7 +172,8 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
         ac = cfg.axis(name)
         axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
-                           effort_scale=EffortScale(ac.rated_effort), clock=clock)
+                           effort_scale=EffortScale(ac.rated_effort), clock=clock,
+                           max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)

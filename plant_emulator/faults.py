@@ -284,6 +284,15 @@ class FaultInjector:
             if value >= 1:
                 setattr(self, name, value - 1)
 
+    def repair(self) -> None:
+        """End every lasting fault (the drive repaired, the encoder referenced again); armed faults
+        that have not fired yet stay armed."""
+        self._lost = self._late = self._silent = 0.0
+        self.heartbeat_stopped = False
+        self.position_offset = 0.0
+        self.held.clear()
+        self.deaf = False
+
     def release(self) -> list[tuple[int, bytes]]:
         frames, self.held = self.held, []
         return frames

@@ -200,8 +200,7 @@ def run_channels(
                 try:
                     fb = ch.axis.read()
                 except AxisError as exc:
-                    fault = Fault((exc.kind or FaultKind.DRIVE_STOPPED).value if exc.kind else "axis error",
-                                  ch.axis.name, k, str(exc))
+                    fault = Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc))
                     raise
                 if ch.axis.power is not enabled:
                     fault = _left_operation(ch, k)

@@ -224,7 +224,7 @@ class CanopenAxis:
         if (want.vendor_id is not None and vendor != want.vendor_id) or (
             want.product_code is not None and product != want.product_code
         ):
-            raise AxisError(
+            raise AxisConfigError(
                 f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
                 f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
             )
@@ -232,7 +232,7 @@ class CanopenAxis:
     def _configure(self) -> None:
         supported = self._sdo(cia402.SUPPORTED_DRIVE_MODES)
         if not supported & cia402.supported_mode_bit(cia402.Mode.CYCLIC_SYNC_TORQUE):
-            raise AxisError(f"axis {self.name}: node {self.node_id}: drive does not support cyclic synchronous "
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: drive does not support cyclic synchronous "
                             f"torque (0x6502 = 0x{supported:08X})")
         self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
         self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
@@ -248,7 +248,8 @@ class CanopenAxis:
             raise AxisConfigError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
         mode = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
         if mode != cia402.Mode.CYCLIC_SYNC_TORQUE:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, expected 10 (CST)")
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, "
+                                  "expected 10 (CST)")
 
     def _map_pdos(self) -> None:
         """RPDO1 and TPDO1/2 as drivectl needs them, every other PDO off (canopen's PdoMap writes)."""

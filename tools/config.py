@@ -208,6 +208,11 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         for req in ("plant", "controller", "profile"):
             if req not in raw:
                 raise ConfigError(f"{src}: {k}.{req}: missing")
+        from drivectl.controllers.registry import CONTROLLERS
+
+        if isinstance(raw["controller"], str) and raw["controller"] not in CONTROLLERS:
+            raise ConfigError(f"{src}: {k}.controller: unknown controller {raw['controller']!r} "
+                              f"(known: {', '.join(CONTROLLERS)})")
         settings = raw.get("controller_settings", {})
         if not isinstance(settings, dict):
             raise ConfigError(f"{src}: {k}.controller_settings: expected a table")

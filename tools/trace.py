@@ -144,7 +144,8 @@ class Trace:
         try:
             data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
         except ValueError as exc:
-            raise TraceError(f"{source}: garbled data: {str(exc).splitlines()[0]}") from None
+            reason = str(exc).splitlines()[0].split("; use `usecols`")[0]  # numpy's hint is not for our users
+            raise TraceError(f"{source}: garbled data: {reason}") from None
         if data.shape[1] != len(names):
             raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)}")
         columns = {name: data[:, j].copy() for j, name in enumerate(names)}

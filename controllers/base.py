@@ -83,8 +83,8 @@ class Settings:
                 continue
             if "lo" not in meta:
                 continue
-            arr = np.asarray(value)
-            if arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
+            arr = np.asarray(value) if not isinstance(value, list | tuple | dict) else None  # arrays: numpy only
+            if arr is None or arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
                 raise SettingsError(f"{source}: {name}: expected a number, got {value!r}")
             if not np.all(np.isfinite(arr)):
                 raise SettingsError(f"{source}: {name}: expected a finite number, got {value!r}")

@@ -201,7 +201,7 @@ VOCABULARY: tuple[str, ...] = ("none", *EFFECTS)
 def validate_effect(name: str, params: Mapping[str, object], source: str = "effect", key: str = "") -> None:
     """Raise PlantError (one line naming source and key) unless ``name`` with ``params`` is valid."""
     where = f"{source}: {key + '.' if key else ''}"
-    if name not in EFFECTS:
+    if not isinstance(name, str) or name not in EFFECTS:
         raise PlantError(f"{where}name: unknown effect {name!r} (known: {', '.join(EFFECTS)})")
     eff = EFFECTS[name]
     defs = {p.name: p for p in eff.params}

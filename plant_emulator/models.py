@@ -227,8 +227,10 @@ def plant_from_mapping(data: dict[str, Any], source: str, name: str) -> PlantSpe
     unknown = set(data) - {"model", "effort_unit", "params", "effects", "name"}
     if unknown:
         raise PlantError(f"{source}: {sorted(unknown)[0]}: unknown key (expected model, effort_unit, params, effects)")
+    if not isinstance(data.get("name", ""), str):
+        raise PlantError(f"{source}: name: expected a string, got {data['name']!r}")
     model = data.get("model")
-    if model not in MODELS:
+    if not isinstance(model, str) or model not in MODELS:
         raise PlantError(f"{source}: model: expected one of {', '.join(MODELS)}, got {model!r}")
     unit = data.get("effort_unit", "N")
     if unit not in ("N", "V"):

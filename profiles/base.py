@@ -65,6 +65,8 @@ class ProfileBase:
 
     name: str
     duration: float
+    #: the file it was loaded from (set by ``load_profile``), named with ``name`` in limit errors
+    source: str | None = None
 
     def sample(self, t: np.ndarray) -> Samples:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -139,6 +141,8 @@ def check_limits(
     A tolerance of 1e-9 (in the SI unit of each quantity) absorbs rounding.
     """
     name = profile_name(profile)
+    source = getattr(profile, "source", None)
+    shown = f"{name} ({source})" if source else name
     if position is not None:
         if len(position) != 2:
             raise ProfileError(f"profile {name}: position limits: expected (lower, upper), got {position!r}")
@@ -178,4 +182,4 @@ def check_limits(
             found.append((i, f"acceleration {acc[i]:.4f} m/s^2 {where}"))
     if found:
         _, msg = min(found, key=lambda f: f[0])  # stable: position before velocity before acceleration
-        raise ProfileError(f"profile {name}: {msg}")
+        raise ProfileError(f"profile {shown}: {msg}")

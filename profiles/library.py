@@ -106,13 +106,15 @@ def load_profile(name_or_path: str | os.PathLike[str], axis: str = "x") -> Profi
         raise ProfileError(f"{shown}: invalid TOML: {_decode_error(exc, text)}") from exc
     ctx = _Ctx(shown, "", path.stem, axis)
     try:
-        return _build(ctx, data, prev_end=None)
+        profile = _build(ctx, data, prev_end=None)
     except ProfileError as exc:
         # The loader validates every key itself; anything a constructor still refuses (e.g. ruckig) gets
         # the file name prepended so the message always says which file.
         if str(exc).startswith(f"{shown}: "):
             raise
         raise ProfileError(f"{shown}: {exc}") from exc
+    profile.source = shown  # limit errors (check_limits) then name the file
+    return profile
 
 
 # --------------------------------------------------------------------------------------------------

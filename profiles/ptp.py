@@ -113,7 +113,9 @@ def _plan(name: str, start: float, target: float, vmax: float, amax: float, jmax
     try:
         result = otg.calculate(inp, traj)
     except ruckig.RuckigError as exc:  # input it refuses (we validate first, so this is rare)
-        raise ProfileError(f"profile {name}: ruckig refused the move: {str(exc).strip()}") from exc
+        reason = str(exc).strip().splitlines()[0].strip().removesuffix(" input:")  # then ruckig dumps its whole input
+        raise ProfileError(f"profile {name}: vmax, amax, jmax: ruckig cannot plan {start:g} -> {target:g} m with "
+                           f"{vmax:g} m/s, {amax:g} m/s^2, {jmax:g} m/s^3 ({reason})") from exc
     if result != ruckig.Result.Working or not math.isfinite(traj.duration):
         raise ProfileError(f"profile {name}: ruckig could not plan the move ({result})")
     return traj

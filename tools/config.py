@@ -85,6 +85,9 @@ following_time_s = 0.01
 """
 
 
+#: the largest position count of the drive's INTEGER32 0x6064 / 0x607A
+MAX_COUNTS = 2**31 - 1
+
 DEFAULT_EDS = str(Path(__file__).resolve().parent.parent / "driver" / "eds" / "drivectl-emulated-drive.eds")
 
 
@@ -154,11 +157,13 @@ def load_config(path: str | Path | None = None) -> MachineConfig:
     return parse_config(data, str(p))
 
 
-def _number(src: str, key: str, value: Any, *, positive: bool = False) -> float:
+def _number(src: str, key: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise ConfigError(f"{src}: {key}: expected a number, got {value!r}")
     if positive and value <= 0:
         raise ConfigError(f"{src}: {key}: must be > 0, got {value!r}")
+    if nonnegative and value < 0:
+        raise ConfigError(f"{src}: {key}: must be >= 0, got {value!r}")
     return float(value)
 
 
@@ -240,32 +245,43 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             following_error=_number(
                 src, f"{k}.limits.following_error_m", lim_raw.get("following_error_m", 5e-3), positive=True
             ),
-            following_time=_number(src, f"{k}.limits.following_time_s", lim_raw.get("following_time_s", 0.0)),
+            following_time=_number(src, f"{k}.limits.following_time_s", lim_raw.get("following_time_s", 0.0),
+                                   nonnegative=True),
             max_speed=_number(src, f"{k}.limits.max_speed_m_s", lim_raw.get("max_speed_m_s", 2.0), positive=True),
         )
         from_drive = {"position": "position_m", "following_error": "following_error_m",
                       "following_time": "following_time_s"}
+        resolution = _number(src, f"{k}.encoder_m_per_count", raw.get("encoder_m_per_count", DEFAULT_RESOLUTION_M),
+                             positive=True)
+        if position is not None and max(abs(position[0]), abs(position[1])) / resolution > MAX_COUNTS:
+            raise ConfigError(f"{src}: {k}.encoder_m_per_count: {resolution:g} m per count cannot reach the soft "
+                              f"limits {list(position)} m in the drive's 32-bit position (0x6064)")
+        rated = _number(src, f"{k}.rated_effort", raw.get("rated_effort", 100.0), positive=True)
+        if round(rated * 1000) > 0xFFFF_FFFF:
+            raise ConfigError(f"{src}: {k}.rated_effort: must be <= {0xFFFF_FFFF / 1000:g} (0x6076 holds it in "
+                              f"thousandths, 32 bits), got {rated!r}")
         axes[name] = AxisConfig(
             name=name,
             plant=_string(src, f"{k}.plant", raw["plant"]),
             controller=_string(src, f"{k}.controller", raw["controller"]),
             profile=_string(src, f"{k}.profile", raw["profile"]),
             controller_settings=dict(settings),
-            encoder_m_per_count=_number(
-                src, f"{k}.encoder_m_per_count", raw.get("encoder_m_per_count", DEFAULT_RESOLUTION_M), positive=True
-            ),
+            encoder_m_per_count=resolution,
             limits=limits,
             node_id=_node_id(src, f"{k}.node_id", raw.get("node_id", len(axes) + 1)),
-            rated_effort=_number(src, f"{k}.rated_effort", raw.get("rated_effort", 100.0), positive=True),
+            rated_effort=rated,
             eds=_string(src, f"{k}.eds", raw.get("eds", DEFAULT_EDS)),
             max_lost_cycles=_count(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
             rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
         )
-    ids = [a.node_id for a in axes.values()]
-    if len(set(ids)) != len(ids):
-        raise ConfigError(f"{src}: axes: two axes share a node_id ({sorted(ids)})")
+    owner: dict[int, str] = {}
+    for name, ac in axes.items():
+        if ac.node_id in owner:
+            raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
+                              "(two axes share a node_id)")
+        owner[ac.node_id] = name
     return MachineConfig(src, cycle, axes, bus)
 
 

@@ -41,6 +41,8 @@ class Trace:
 
     columns: dict[str, np.ndarray]
     meta: dict[str, str] = field(default_factory=dict)
+    #: where the trace came from (its file), named in errors
+    source: str = field(default="trace", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for name in REQUIRED:
@@ -77,7 +79,7 @@ class Trace:
             return float(self.meta["dt_s"])
         if len(self.time) > 1:
             return float(np.median(np.diff(self.time)))
-        raise TraceError("trace: cannot tell dt from fewer than two rows")
+        raise TraceError(f"{self.source}: dt_s: not in the metadata, and fewer than two rows to tell it from")
 
     @property
     def effort_unit(self) -> str:
@@ -87,7 +89,7 @@ class Trace:
         return len(self.time)
 
     def head(self, n: int) -> Trace:
-        return Trace({k: v[:n] for k, v in self.columns.items()}, dict(self.meta))
+        return Trace({k: v[:n] for k, v in self.columns.items()}, dict(self.meta), self.source)
 
     # ---------------------------------------------------------------------------------------------
     def to_text(self) -> str:
@@ -132,6 +134,13 @@ class Trace:
                 key, _, value = line.partition(":")
                 meta[key.strip()] = value.strip()
             i += 1
+        if "dt_s" in meta:
+            try:
+                dt = float(meta["dt_s"])
+            except ValueError:
+                dt = math.nan
+            if not (math.isfinite(dt) and dt > 0):
+                raise TraceError(f"{source}: dt_s: expected a number > 0 (s), got {meta['dt_s']!r}")
         if i >= len(lines):
             raise TraceError(f"{source}: no column row (expected {','.join(REQUIRED)})")
         names = [c.strip() for c in lines[i].split(",")]
@@ -144,10 +153,10 @@ class Trace:
         try:
             data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
         except ValueError as exc:
-            reason = str(exc).splitlines()[0].split("; use `usecols`")[0]  # numpy's hint is not for our users
-            raise TraceError(f"{source}: garbled data: {reason}") from None
+            raise _garbled(source, names, rows, exc) from None
         if data.shape[1] != len(names):
-            raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)}")
+            raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)} "
+                             f"({','.join(names)})")
         columns = {name: data[:, j].copy() for j, name in enumerate(names)}
         for name in REQUIRED:
             bad = ~np.isfinite(columns[name])
@@ -158,7 +167,27 @@ class Trace:
         if len(t) > 1 and np.any(np.diff(t) <= 0):
             row = int(np.argmax(np.diff(t) <= 0)) + 2
             raise TraceError(f"{source}: column time_s: not increasing at data row {row}")
-        return cls(columns, meta)
+        return cls(columns, meta, source)
+
+
+def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError) -> TraceError:
+    """The first data row that numpy could not read, with the column at fault."""
+    for r, row in enumerate(rows, 1):
+        fields = row.split(",")
+        if len(fields) < len(names):
+            return TraceError(f"{source}: garbled data: data row {r} has {len(fields)} of {len(names)} fields, no "
+                              f"column {', '.join(names[len(fields):])} (truncated?)")
+        if len(fields) > len(names):
+            return TraceError(f"{source}: garbled data: data row {r} has {len(fields)} fields, the column row "
+                              f"{len(names)} ({','.join(names)})")
+        for name, text in zip(names, fields, strict=True):
+            try:
+                float(text)
+            except ValueError:
+                return TraceError(f"{source}: garbled data: column {name}: {text.strip()!r} is not a number at "
+                                  f"data row {r}")
+    reason = str(exc).splitlines()[0].split("; use `usecols`")[0]  # numpy's hint is not for our users
+    return TraceError(f"{source}: garbled data: {reason}")
 
 
 def atomic_write_text(path: Path, text: str) -> None:

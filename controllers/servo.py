@@ -28,7 +28,7 @@ import numpy as np
 from drivectl.controllers.base import Controller
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState, error_text
-from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits
+from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
 from drivectl.tools.trace import Trace, format_value
 
 
@@ -45,6 +45,23 @@ class LimitError(ValueError):
     """A run was refused before anything moved (profile outside limits, axis not at the start)."""
 
 
+#: the most cycles one run records: the references are sampled and the trace is held in memory for the
+#: whole run (about 130 bytes per cycle and axis), so one hour at 1 kHz is about 0.5 GB per axis
+MAX_RUN_CYCLES = 3_600_000
+
+
+def check_run_length(duration: float, dt: float, what: str = "run: duration") -> int:
+    """The number of cycles of a run of ``duration`` s; LimitError (naming ``what``) unless it is > 0 and
+    at most MAX_RUN_CYCLES."""
+    if not (math.isfinite(duration) and duration > 0):
+        raise LimitError(f"{what}: must be a number of seconds > 0, got {duration!r}")
+    n = int(round(duration / dt)) + 1
+    if n > MAX_RUN_CYCLES:
+        raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than a run records "
+                         f"({MAX_RUN_CYCLES} cycles, {MAX_RUN_CYCLES * dt:g} s); split it into shorter runs")
+    return n
+
+
 @dataclass(frozen=True)
 class Limits:
     """What an axis may do. Defaults allow everything but a following error beyond 5 mm."""
@@ -54,6 +71,8 @@ class Limits:
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
     max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
+    #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
+    position_source: str | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
@@ -168,10 +187,14 @@ def run_channels(
     for ch in channels:
         if abs(ch.axis.dt - dt) > 1e-12 or abs(ch.controller.dt - dt) > 1e-12:
             raise ValueError(f"run: axis {ch.axis.name}: cycle times differ ({ch.axis.dt}, {ch.controller.dt})")
-    total = duration if duration is not None else max(ch.profile.duration for ch in channels)
-    if not total > 0:
-        raise ValueError(f"run: duration: must be > 0, got {total}")
-    n = int(round(total / dt)) + 1
+    if duration is not None:
+        total, what = duration, "run: duration"
+    else:
+        longest = max(channels, key=lambda ch: ch.profile.duration).profile
+        total = longest.duration
+        source = getattr(longest, "source", None)
+        what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
+    n = check_run_length(total, dt, what)
     t = np.arange(n) * dt
 
     refs = []
@@ -331,7 +354,8 @@ def _check_profile(ch: Channel, until: float) -> None:
         try:
             check_limits(ch.profile, position=lim.position, until=until)
         except ProfileError as exc:
-            raise LimitError(f"axis {ch.axis.name}: {exc}; nothing moved") from None
+            origin = f" ({lim.position_source})" if lim.position_source else ""
+            raise LimitError(f"axis {ch.axis.name}: {exc}{origin}; nothing moved") from None
     ch.following_since = None
     ch.last_position = None
 

@@ -122,7 +122,9 @@ class CanopenAxis:
         try:
             od = canopen.import_od(str(eds), node_id)
         except Exception as exc:  # canopen raises many types for a bad file
-            raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {exc}") from None
+            # configparser's messages run over several lines (a line per offending line): keep the first
+            reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0].rstrip(":")
+            raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {reason}") from None
         missing = [f"0x{i:04X}" for i in cia402.REQUIRED_OBJECTS if i not in od]
         if missing:
             raise AxisConfigError(f"axis {name}: EDS {eds}: missing required object(s) {', '.join(missing)}")
@@ -378,6 +380,7 @@ class CanopenAxis:
         lo, hi = self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 1), self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 2)
         if lo < hi and (lo, hi) != (-0x80000000, 0x7FFFFFFF):  # the whole int32 range: no limits set
             out["position"] = (enc.from_counts(lo), enc.from_counts(hi))
+            out["position_source"] = f"node {self.node_id}: 0x607D software position limit"
         return out
 
     def write(self, effort: float) -> None:

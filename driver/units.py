@@ -41,9 +41,20 @@ class EffortScale:
 
     rated: float
 
+    #: the largest rated effort: 0x6076 holds it in thousandths as UNSIGNED32
+    MAX_RATED = 0xFFFF_FFFF / 1000
+
     def __post_init__(self) -> None:
         if not self.rated > 0:
             raise ValueError(f"effort scale: rated effort must be > 0, got {self.rated!r}")
+        if not self.rated <= self.MAX_RATED:
+            raise ValueError(f"effort scale: rated effort must be <= {self.MAX_RATED:g} (0x6076 holds it in "
+                             f"thousandths, 32 bits), got {self.rated!r}")
+
+    @property
+    def rated_thousandths(self) -> int:
+        """The value of 0x6076 (rated torque, in thousandths of the effort unit)."""
+        return round(self.rated * 1000)
 
     def to_permille(self, effort: float) -> int:
         """Per mille of rated, clipped to what 0x6071 (INTEGER16) can carry."""

@@ -86,7 +86,7 @@ class EmulatedDrive:
         self.scale = EffortScale(rated_effort)
         self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
                                 quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION))
-        self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(rated_effort * 1000))
+        self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", self.scale.rated_thousandths)
         # one serial number per emulated drive (the EDS default would make every drive look alike)
         self.node.data_store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", node_id)
         self.nmt = NmtState.INITIALISING
@@ -134,7 +134,7 @@ class EmulatedDrive:
         if application or spontaneous:
             self.node.data_store.clear()
             self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack(
-                "<I", round(self.scale.rated * 1000))
+                "<I", self.scale.rated_thousandths)
             self.node.data_store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", self.node_id)
             self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
             self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION)

@@ -81,7 +81,8 @@ def config_with_eds(eds_path: Path) -> str:
 
 # (id, kind of the bad file, its text, argv (the file option and --out are added), expected fragments)
 # kinds: config (--config FILE), profile (--profile FILE), plant (--plant FILE), trace (summary/plot FILE),
-# eds (a config whose axis x reads the bad EDS), init (config init FILE over an existing FILE).
+# eds (a config whose axis x reads the bad EDS), args (no file: the command line), init (config init FILE over an
+# existing FILE).
 CASES = [
     # -- machine configuration ---------------------------------------------------------------------------
     ("config-toml-syntax", "config", edit(CONFIG, "[axes.x]\n", "[axes.x\n"), SIM,
@@ -157,6 +158,19 @@ CASES = [
     ("config-unknown-controller", "config", edit(CONFIG, 'controller = "asmc"             #',
                                                  'controller = "lqr"             #'), SIM,
      ("{path}", "axes.x.controller", "'lqr'")),
+    ("config-limits-not-a-pair", "config", edit(CONFIG, "position_m = [-0.1, 0.1]   ", "position_m = 0.1   "), SIM,
+     ("{path}", "axes.x.limits.position_m", "[lower, upper]", "0.1")),
+    ("config-max-speed-negative", "config", edit(CONFIG, "max_speed_m_s = 2.0 ", "max_speed_m_s = -2.0 "), SIM,
+     ("{path}", "axes.x.limits.max_speed_m_s", "-2.0")),
+    ("config-max-lost-cycles-negative", "config", edit(CONFIG, "max_lost_cycles = 3 ", "max_lost_cycles = -1 "),
+     BUS, ("{path}", "axes.x.max_lost_cycles", "-1")),
+    ("config-rpdo-timeout-string", "config", edit(CONFIG, "rpdo_timeout_ms = 2 ", 'rpdo_timeout_ms = "2" '), BUS,
+     ("{path}", "axes.x.rpdo_timeout_ms", "'2'")),
+    ("config-plant-file-missing", "config", edit(CONFIG, 'plant = "rigid-x"', 'plant = "no-such-plant.toml"'), SIM,
+     ("{path}", "axes.x.plant", "no-such-plant.toml", "no such plant file")),
+    ("config-profile-unknown", "config", edit(CONFIG, '[axes.x]\nnode_id = 1\n',
+                                              '[axes.x]\nnode_id = 1\nprofile = "spiral"\n').replace(
+        'profile = "circle"              #', "#", 1), SIM, ("{path}", "axes.x.profile", "'spiral'")),
     ("config-bus-interface-unknown", "config", edit(CONFIG, 'interface = "virtual"', 'interface = "can4linux"'),
      BUS, ("{path}", "bus.interface", "'can4linux'")),
     ("config-bus-bitrate-negative", "config", edit(CONFIG, "bitrate = 1000000", "bitrate = -1000000"), BUS,
@@ -176,7 +190,9 @@ CASES = [
     ("profile-unknown-key", "profile", edit(PROFILE, "vmax = 0.05", "vmx = 0.05"), SIM,
      ("{path}", "vmx", "unknown key")),
     ("profile-leaves-soft-limits", "profile", edit(PROFILE, "target = 0.01", "target = 0.5"), SIM_FULL,
-     ("{path}", "axis x", "position", "soft limits [-0.1, 0.1]", "nothing moved")),
+     ("{path}", "axis x", "position", "soft limits [-0.1, 0.1]", "axes.x.limits.position_m", "nothing moved")),
+    ("profile-longer-than-a-run-records", "profile", edit(DWELL, "duration = 0.5", "duration = 1e12"),
+     SIM_FULL, ("{path}", "duration", "1e+12 s", "3600000 cycles")),
     ("profile-unplannable-limits", "profile", edit(PROFILE, "vmax = 0.05", "vmax = 1e-300"), SIM,
      ("{path}", "vmax", "ruckig cannot plan")),
     # -- plants (--plant FILE) ---------------------------------------------------------------------------
@@ -220,27 +236,29 @@ CASES = [
     # -- the drive: its EDS and its answers ------------------------------------------------------------
     ("eds-missing-0x6077", "eds", eds_without("6077"), BUS, ("{name}", "axis x", "0x6077", "missing")),
     ("eds-missing-file", "eds", None, BUS, ("{name}", "axis x", "cannot be read")),
+    ("eds-not-an-eds", "eds", "this is not an EDS\n", BUS, ("{name}", "axis x", "cannot be read")),
+    # the drive on the bus is not the one the EDS describes (0x1018 vendor)
+    ("eds-of-another-drive", "eds", re.sub(r"(?m)^VendorNumber=\S+", "VendorNumber=0x12345678", EDS), BUS,
+     ("node 1", "identity", "expects vendor 0x12345678")),
+    # the drive answers an SDO write with an abort (injected into the emulated drive)
+    ("sdo-abort-injected", "args", None, [*BUS, "--fault", "sdo-abort:index=0x6060"],
+     ("axis x", "node 1", "SDO 0x6060 aborted")),
     # the master's EDS says 0x6060 is 16 bits; the drive (8 bits) aborts the write of the mode of operation
     ("sdo-abort-while-configuring", "eds", edit(EDS, "[6060]\nParameterName=Modes of operation\nObjectType=0x7\n"
                                                 "DataType=0x0002", "[6060]\nParameterName=Modes of operation\n"
                                                 "ObjectType=0x7\nDataType=0x0006"), BUS,
      ("node 1", "0x6060", "aborted")),
+    # -- command-line values ----------------------------------------------------------------------------
+    ("fault-spec-zero-cycles", "args", None, [*BUS, "--fault", "tpdo-lost:cycles=0@1"], ("--fault", "cycles")),
+    ("fault-spec-unknown-kind", "args", None, [*BUS, "--fault", "brownout@1"], ("--fault", "'brownout'")),
+    ("duration-longer-than-a-run-records", "args", None, [*SIM, "--duration", "1e12"],
+     ("--duration", "1e+12 s", "3600000 cycles")),
     # -- config init over an existing file ---------------------------------------------------------------
     ("config-init-over-existing", "init", "# my machine, hand-tuned\ncycle_s = 0.002\n", [],
      ("{path}", "exists", "--force")),
 ]
 
-# Bad input still answered with more than one line, in a file this matrix's author could not change: each
-# must start to pass (strict) once fixed, and then moves up into CASES.
-KNOWN_DEFECTS = [
-    # driver/canopen_axis.py puts configparser's three-line message into the AxisConfigError
-    ("eds-not-an-eds", "eds", "this is not an EDS\n", BUS, ("{name}", "axis x", "cannot be read"),
-     "driver/canopen_axis.py: the EDS parse error is several lines"),
-]
-
-PARAMS = [pytest.param(*c[1:], id=c[0]) for c in CASES] + [
-    pytest.param(*c[1:5], id=c[0], marks=pytest.mark.xfail(reason=c[5], strict=True)) for c in KNOWN_DEFECTS
-]
+PARAMS = [pytest.param(*c[1:], id=c[0]) for c in CASES]
 
 
 def _prepare(tmp_path: Path, kind: str, text: str | None, argv: list[str]) -> tuple[list[str], Path, Path]:
@@ -263,6 +281,8 @@ def _prepare(tmp_path: Path, kind: str, text: str | None, argv: list[str]) -> tu
         cfg = tmp_path / "machine.toml"
         cfg.write_text(config_with_eds(bad))
         return ["--config", str(cfg), *argv, "--out", str(out)], bad, out
+    if kind == "args":  # no file: the command line itself is wrong
+        return [*argv, "--out", str(out)], bad, out
     assert kind == "init"
     return ["config", "init", str(bad)], bad, out
 

@@ -128,6 +128,10 @@ def test_units_round_trip():
     assert scale.to_permille(500.0) == 500 and scale.from_permille(-250) == -250.0
     with pytest.raises(ValueError, match="resolution"):
         Encoder(0.0)
+    # 0x6076 holds the rated effort in thousandths as UNSIGNED32: the largest that fits passes, more does not
+    assert EffortScale(rated=EffortScale.MAX_RATED).rated_thousandths == 0xFFFF_FFFF
+    with pytest.raises(ValueError, match="0x6076"):
+        EffortScale(rated=EffortScale.MAX_RATED * 1.001)
 
 
 # -- trace file --------------------------------------------------------------------------------------

@@ -152,12 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 # --------------------------------------------------------------------------------------------------
 def cmd_trace(args: argparse.Namespace) -> int:
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Channel, StopReason, run_channels
+    from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
-    from drivectl.profiles.library import load_profile
     from drivectl.tools.config import ConfigError, load_config
-    from drivectl.tools.machine import open_machine, plant_specs
+    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
@@ -170,7 +169,9 @@ def cmd_trace(args: argparse.Namespace) -> int:
             raise FaultSpecError(f"--fault {f}: this process is the master; kill it instead (kill -9: the "
                                  "drive stops by itself per 0x6007), or inject it on the drive side: "
                                  "drivectl emulate --fault")
-    profiles = {name: load_profile(args.profile or cfg.axis(name).profile, axis=name) for name in names}
+    profiles = {name: axis_profile(cfg, name, args.profile) for name in names}
+    if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
+        check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
     controllers = {}
     for name in names:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from drivectl.controllers.servo import Limits
-from drivectl.driver.units import DEFAULT_RESOLUTION_M
+from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale
 
 DEFAULT_CONFIG_TOML = """\
 # drivectl machine configuration (embedded default: emulated drives, no hardware)
@@ -124,6 +124,8 @@ class AxisConfig:
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
         taken = {k: v for k, v in drive.items() if k in self.limits_from_drive}
+        if "position" in taken and "position_source" in drive:
+            taken["position_source"] = drive["position_source"]
         return replace(self.limits, **taken) if taken else self.limits
 
 
@@ -239,6 +241,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             position = (lo, hi)
         limits = Limits(
             position=position,
+            position_source=f"{src}: {k}.limits.position_m" if position is not None else None,
             max_effort=_number(src, f"{k}.limits.max_effort", lim_raw.get("max_effort", math.inf), positive=True)
             if "max_effort" in lim_raw
             else math.inf,
@@ -257,8 +260,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: {k}.encoder_m_per_count: {resolution:g} m per count cannot reach the soft "
                               f"limits {list(position)} m in the drive's 32-bit position (0x6064)")
         rated = _number(src, f"{k}.rated_effort", raw.get("rated_effort", 100.0), positive=True)
-        if round(rated * 1000) > 0xFFFF_FFFF:
-            raise ConfigError(f"{src}: {k}.rated_effort: must be <= {0xFFFF_FFFF / 1000:g} (0x6076 holds it in "
+        if rated > EffortScale.MAX_RATED:
+            raise ConfigError(f"{src}: {k}.rated_effort: must be <= {EffortScale.MAX_RATED:g} (0x6076 holds it in "
                               f"thousandths, 32 bits), got {rated!r}")
         axes[name] = AxisConfig(
             name=name,

@@ -51,9 +51,8 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
     from drivectl.plant_emulator.node402 import EmulatedDrive
-    from drivectl.profiles.library import load_profile
     from drivectl.tools.config import load_config
-    from drivectl.tools.machine import plant_specs
+    from drivectl.tools.machine import axis_profile, plant_specs
 
     cfg = load_config(args.config)
     names = [a.strip() for a in args.axis.split(",")] if args.axis else list(cfg.axes)
@@ -93,7 +92,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     for i, name in enumerate(names):
         ac = cfg.axis(name)
         # each axis stands where its configured profile starts, as `drivectl trace` expects
-        start = load_profile(ac.profile, axis=name).start_position
+        start = axis_profile(cfg, name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
                               initial_position=start, faults=injectors[name] if faults else None)

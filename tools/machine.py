@@ -35,9 +35,11 @@ from drivectl.driver.network import (
 )
 from drivectl.driver.units import EffortScale, Encoder
 from drivectl.plant_emulator.faults import FaultInjector, FaultSpec, FaultSpecError, FaultyBus
-from drivectl.plant_emulator.models import PlantSpec, load_plant
+from drivectl.plant_emulator.models import PlantError, PlantSpec, load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
 from drivectl.plant_emulator.sim_axis import SimAxis
+from drivectl.profiles.base import Profile, ProfileError
+from drivectl.profiles.library import load_profile
 from drivectl.tools.config import MachineConfig
 
 
@@ -88,11 +90,28 @@ def plant_specs(cfg: MachineConfig, names: Sequence[str], plant: str | None = No
                 effects: Sequence[tuple[str, dict[str, float]]] = ()) -> dict[str, PlantSpec]:
     specs = {}
     for name in names:
-        spec = load_plant(plant or cfg.axis(name).plant)
+        if plant is not None:
+            spec = load_plant(plant)
+        else:
+            try:
+                spec = load_plant(cfg.axis(name).plant)
+            except PlantError as exc:  # name the configuration key that pointed there
+                raise PlantError(f"{cfg.source}: axes.{name}.plant: {exc}") from None
         for ename, eparams in effects:
             spec = spec.with_effect(ename, **eparams)
         specs[name] = spec
     return specs
+
+
+def axis_profile(cfg: MachineConfig, name: str, profile: str | None = None) -> Profile:
+    """The profile ``profile`` (``--profile``) or else the one ``cfg`` names for axis ``name``; an error in
+    the latter names the configuration key that pointed there."""
+    if profile is not None:
+        return load_profile(profile, axis=name)
+    try:
+        return load_profile(cfg.axis(name).profile, axis=name)
+    except ProfileError as exc:
+        raise ProfileError(f"{cfg.source}: axes.{name}.profile: {exc}") from None
 
 
 def open_machine(

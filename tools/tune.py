@@ -151,9 +151,9 @@ class _Job:
 
 
 def _profile(job: _Job) -> Any:
-    from drivectl.profiles.library import load_profile
+    from drivectl.tools.machine import axis_profile
 
-    return load_profile(job.cfg.axis(job.axis).profile, axis=job.axis)
+    return axis_profile(job.cfg, job.axis)
 
 
 def simulate(job: _Job, gains: Mapping[str, float], profile: Any = None) -> Metrics:
@@ -395,9 +395,9 @@ def tune(
 
     base, start, full = starting_gains(cfg, axis_name, name)
     bounds, fixed = search_space(name, start, full)
-    from drivectl.profiles.library import load_profile
+    from drivectl.tools.machine import axis_profile
 
-    profile = load_profile(ac.profile, axis=axis_name)
+    profile = axis_profile(cfg, axis_name)
     duration = float(seconds) if seconds is not None else float(profile.duration)
     job = _Job(cfg, axis_name, name, base, duration, weight)
     use_batch = _batch_ok(cfg, axis_name)
@@ -475,12 +475,11 @@ def verify_gains(cfg: MachineConfig, axis: str, controller: str, settings: Mappi
     """One trace of ``settings`` on the axis (bus or SimAxis) and its metrics under the same cost."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import run
-    from drivectl.profiles.library import load_profile
-    from drivectl.tools.machine import open_machine, plant_specs
+    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
     from drivectl.tools.metrics import effort_roughness, tracking_error
 
     ac = cfg.axis(axis)
-    profile = load_profile(ac.profile, axis=axis)
+    profile = axis_profile(cfg, axis)
     spec = plant_specs(cfg, [axis])[axis]
     ctrl = make_controller(controller, cfg.cycle_s, dict(settings), plant=spec, axis=axis)
     with open_machine(cfg, [axis], sim=sim, start={axis: profile.start_position}) as machine:

@@ -37,8 +37,10 @@ def main() -> None:
         print(json.dumps({"faults": {o.case: {"detected": o.detected, "safe_within_cycles": o.safe_within_cycles,
                                               "trace_complete": o.trace_complete} for o, _ in rows}}))
         return
-    head = (f"{'fault (--fault)':<22} {'detected as':<36} {'fired':>5} {'row':>5} {'detect':>7} {'safe in':>8} "
-            f"{'state':<20} {'trace':>6}")
+    kw = max(len("detected as"), *(len(o.kind) for o, _ in rows))  # columns as wide as their longest entry
+    sw = max(len("state"), *(len(o.safe_state) for o, _ in rows))
+    head = (f"{'fault (--fault)':<22} {'detected as':<{kw}} {'fired':>5} {'row':>5} {'detect':>7} {'safe in':>8} "
+            f"{'state':<{sw}} {'trace':>6}")
     print(head)
     print("-" * len(head))
     for o, _ in rows:
@@ -47,7 +49,7 @@ def main() -> None:
         trace = "whole" if o.trace_complete else "none"
         fired = "-" if o.inject_cycle is None else str(o.inject_cycle)
         det = "-" if o.detect_after is None else f"{o.detect_after} cyc"
-        print(f"{o.case:<22} {o.kind[:36]:<36} {fired:>5} {row:>5} {det:>7} {safe:>8} {o.safe_state[:20]:<20} "
+        print(f"{o.case:<22} {o.kind:<{kw}} {fired:>5} {row:>5} {det:>7} {safe:>8} {o.safe_state:<{sw}} "
               f"{trace:>6}")
         if o.note:
             print(f"{'':<22} note: {o.note}")

@@ -44,6 +44,9 @@ from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.units import EffortScale, Encoder
 
+#: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
+EMCY_KEPT = 32
+
 #: the mapping drivectl configures: RPDO1 controlword + target torque; TPDO1 statusword + position;
 #: TPDO2 velocity + torque actual (48 bits each, synchronous, transmission type 1)
 RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
@@ -307,6 +310,12 @@ class CanopenAxis:
 
     def _on_emcy(self, entry: canopen.emcy.EmcyError) -> None:
         self.last_emcy = (entry.code, self.clock.cycle)
+        # canopen keeps every EMCY in log (and active, until an error reset) for ever: bound both, so a
+        # drive that repeats its EMCY for hours does not grow the master's memory
+        emcy = self.node.emcy
+        with emcy.emcy_received:
+            del emcy.log[:-EMCY_KEPT]
+            del emcy.active[:-EMCY_KEPT]
 
     def read(self) -> Feedback:
         """Next cycle: SYNC (unless another axis of this bus sent it), then this drive's TPDOs."""

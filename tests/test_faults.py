@@ -223,3 +223,19 @@ def test_fault_reset_then_enable_then_trace_again():
         res = run_channels([Channel(axis, ctrl, PointToPoint(drive.drive.position, 0.0, 0.05, 0.5, 20.0,
                                                              hold_until=0.6), ac.limits)])
         assert res.ok, res.detail
+
+
+def test_a_drive_repeating_its_emcy_does_not_grow_the_masters_memory():
+    """canopen's consumer keeps every EMCY; the axis keeps the newest EMCY_KEPT and the last one."""
+    from drivectl.driver.canopen_axis import EMCY_KEPT
+
+    cfg = load_config(None)
+    m, _ctrl, _prof = _machine(cfg)
+    with m:
+        axis, drive = m.axes["x"], m.drives["x"]
+        for i in range(3 * EMCY_KEPT):
+            drive.node.emcy.send(0x4310 + (i % 2), 0x01)
+            axis.read()
+            axis.write(0.0)
+        assert axis.last_emcy[0] == 0x4310 + (3 * EMCY_KEPT - 1) % 2
+        assert len(axis.node.emcy.log) == EMCY_KEPT and len(axis.node.emcy.active) == EMCY_KEPT

@@ -38,7 +38,7 @@ class BatchResult:
 
 def check_linear(plant: Plant) -> None:
     d = plant.design
-    if any(b.has_coulomb for b in d.bodies) or plant._gap or d.periodic or d.input_delay or d.table_offset:
+    if any(b.has_coulomb for b in d.bodies) or plant.gap or d.periodic or d.input_delay or d.table_offset:
         raise ValueError(f"batch: plant {plant.name} is not linear (Coulomb friction, dead zone, periodic or "
                          "delay effects); simulate it member by member")
     if math.isfinite(d.input_limit):

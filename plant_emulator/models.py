@@ -354,6 +354,29 @@ class Plant:
         self._dist_w = 2 * math.pi * design.disturbance_frequency
         self._dist_a = design.disturbance_amplitude
 
+    # -- the discretisation, read by the batch simulators (tools/explain_sim.py, plant_emulator/batch.py) --
+    @property
+    def gap(self) -> float:
+        """Backlash width, m (0: the bodies are always engaged)."""
+        return self._gap
+
+    @property
+    def delay(self) -> tuple[int, float] | None:
+        """The input delay as (whole cycles, fraction of a cycle); None without one."""
+        return (self._delay_cycles, self._delay_frac) if self._history_len else None
+
+    @property
+    def history_len(self) -> int:
+        """Applied efforts a state keeps for the input delay (0 without one)."""
+        return self._history_len
+
+    def substep_matrices(self, engaged: bool, dir0: int, dir1: int) -> tuple[list[list[float]], list[list[float]]]:
+        """(A, B) of one substep, engaged or in the gap, moving in directions ``dir0``/``dir1`` (+-1);
+        directions that do not change the matrices (no asymmetric friction) share one pair, as in step."""
+        key = (engaged if self._gap else True, dir0 if self._asym else 1,
+               dir1 if (self._asym and self.n_bodies == 2) else 1)
+        return self._mats[key]
+
     def _matrices(self, engaged: bool, dirs: tuple[int, int]) -> tuple[list[list[float]], list[list[float]]]:
         d = self.design
         n = self.n_bodies

@@ -116,8 +116,8 @@ def test_batch_simulation_equals_plant_step(clean_traces):
             st = plant.initial_state()
             st.s = [float(a[w, 0]) for a in init]
             st.t = float(win.t0[w])
-            if plant._history_len:
-                st.history = list(win.applied[w, win.history - plant._history_len:win.history])
+            if plant.history_len:
+                st.history = list(win.applied[w, win.history - plant.history_len:win.history])
             xs = []
             for j in range(150):
                 plant.step(st, float(win.applied[w, win.history + j]))

@@ -196,7 +196,7 @@ def _internal(prep: Prepared, plants: list[Plant]) -> tuple[np.ndarray, np.ndarr
     linear and driven by measured quantities alone (tools/explain_sim.internal_state); backlash
     starts quasi-static with the screw against the side the effort pushes it to.
     """
-    if not all(p.n_bodies == 2 and not p._gap and not p.design.bodies[0].has_coulomb
+    if not all(p.n_bodies == 2 and not p.gap and not p.design.bodies[0].has_coulomb
                and p.design.bodies[0].c_pos == 0 and p.design.bodies[0].c_neg == 0 for p in plants):
         return None
     table_acc = np.concatenate((np.diff(prep.vel) / prep.dt, [0.0]))

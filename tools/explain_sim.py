@@ -77,8 +77,8 @@ class BatchSim:
         p0 = self.plants[0]
         self.dt = p0.dt
         self.nb = p0.n_bodies
-        self.two = self.nb == 2 or bool(p0._gap)
-        if any((p.n_bodies == 2 or bool(p._gap)) != self.two for p in self.plants):
+        self.two = self.nb == 2 or bool(p0.gap)
+        if any((p.n_bodies == 2 or bool(p.gap)) != self.two for p in self.plants):
             raise ValueError("BatchSim: candidates must share the body count")
         self.substeps = int(substeps or max(p.substeps for p in self.plants))
         C = len(self.plants)
@@ -96,9 +96,7 @@ class BatchSim:
             for e in (0, 1):
                 for d0 in (0, 1):
                     for d1 in (0, 1):
-                        key = (bool(e) if p._gap else True, 1 - 2 * d0 if p._asym else 1,
-                               1 - 2 * d1 if (p._asym and self.nb == 2) else 1)
-                        A, B = p._mats[key]
+                        A, B = p.substep_matrices(bool(e), 1 - 2 * d0, 1 - 2 * d1)
                         k = e * 4 + d0 * 2 + d1
                         self.A[c, k] = np.asarray(A)
                         self.B[c, k] = np.asarray(B)
@@ -121,10 +119,10 @@ class BatchSim:
         self.dist_w = np.array([2 * math.pi * x.disturbance_frequency for x in d])
         self.has_dist = bool(np.any(self.dist_a != 0))
         self.limit = np.array([x.input_limit for x in d])
-        self.delay_cycles = np.array([p._delay_cycles if p._history_len else 0 for p in compiled])
-        self.delay_frac = np.array([p._delay_frac if p._history_len else 0.0 for p in compiled])
-        self.delayed = bool(np.any([p._history_len for p in compiled]))
-        self.gap = np.array([p._gap for p in compiled])
+        self.delay_cycles = np.array([p.delay[0] if p.delay else 0 for p in compiled])
+        self.delay_frac = np.array([p.delay[1] if p.delay else 0.0 for p in compiled])
+        self.delayed = any(p.delay for p in compiled)
+        self.gap = np.array([p.gap for p in compiled])
         self.stiff = np.array([x.coupling.stiffness if x.coupling else 0.0 for x in d])
         self.masses = np.array([[b.mass for b in x.bodies] for x in d])
         self.damp = np.array([x.coupling.damping if x.coupling else 0.0 for x in d])

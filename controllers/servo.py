@@ -7,25 +7,27 @@ Safety is part of the loop, not an option: before anything moves the profile is 
 soft limits and the axis must sit where the profile starts; every cycle the command is clipped to the
 effort limit, and a position outside the soft limits or a following error outside its window for
 longer than its time ends the run in quick stop, with the trace kept and the reason recorded. Ctrl-C
-(KeyboardInterrupt) ends the same way. So does every fault: the drive leaving Operation Enabled (a
-drive fault: statusword bit 3), an implausible position step (faster than ``max_speed``), and what
-the axis itself detects (:class:`~drivectl.driver.axis.AxisError` with its kind: lost TPDOs, a lost
-heartbeat, an unexpected boot-up, a bus error). The quick stop goes out in the very cycle of the
-detection; the cycles until each drive reports a safe state (Switch On Disabled, Quick Stop Active,
-or Fault: torque off in all three) are counted, and the fault (kind, cycle, statusword, 0x603F text)
-goes into the trace metadata.
+and SIGTERM end the same way, at the next cycle boundary (:mod:`~drivectl.controllers.interrupt`).
+So does every fault: the drive leaving Operation Enabled (a drive fault: statusword bit 3), an
+implausible position step (faster than ``max_speed``), and what the axis itself detects
+(:class:`~drivectl.driver.axis.AxisError` with its kind: lost TPDOs, a lost heartbeat, an unexpected
+boot-up, a bus error). The quick stop goes out in the very cycle of the detection; the cycles until
+each drive reports a safe state (Switch On Disabled, Quick Stop Active, or Fault: torque off in all
+three) are counted, and the fault (kind, cycle, statusword, 0x603F text) goes into the trace metadata.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
 
 from drivectl.controllers.base import Controller
+from drivectl.controllers.interrupt import StopRequest, stop_on_signals
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -125,6 +127,8 @@ class RunResult:
     cycles: int = 0
     clipped: dict[str, int] = field(default_factory=dict)
     fault: Fault | None = None
+    #: False when the run ended before any axis was asked to enable (nothing moved)
+    enabled: bool = True
 
     @property
     def trace(self) -> Trace:
@@ -173,6 +177,7 @@ def run_channels(
     disable_at_end: bool = True,
     on_start: Callable[[int], None] | None = None,
     pace: bool = False,
+    stop_request: StopRequest | None = None,
 ) -> RunResult:
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
@@ -180,6 +185,10 @@ def run_channels(
     interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
     wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
     worst lateness are measured and written into the trace metadata, never hidden.
+
+    SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
+    ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
+    command), otherwise the run routes them itself while it lasts (from the main thread).
     """
     if not channels:
         raise ValueError("run: no axes given")
@@ -210,62 +219,77 @@ def run_channels(
 
     for ch in channels:
         ch.controller.reset()
-    bar = None
-    k = 0
-    try:
-        _bring_up(channels)
-        bar = _progress(n, progress)
-        pacer = Pacer(dt) if pace else None
-        for k in range(n):
-            if pacer is not None:
-                pacer.wait(k)
-            for i, ch in enumerate(channels):
-                try:
-                    fb = ch.axis.read()
-                except AxisError as exc:
-                    fault = Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc))
-                    raise
-                if ch.axis.power is not enabled:
-                    fault = _left_operation(ch, k)
-                    raise AxisError(fault.detail, FaultKind(fault.kind))
-                pr, vr, ar, jr = refs[i]
-                pos = fb.position
-                ref = Reference(pr[k], vr[k], ar[k], jr[k])
-                u = ch.controller.step(ref, fb)
-                lim = ch.limits
-                if u > lim.max_effort or u < -lim.max_effort:
-                    u = lim.max_effort if u > 0 else -lim.max_effort
-                    clipped[i] += 1
-                r = rec[i]
-                r["pos_m"][k] = pos
-                r["vel_m_s"][k] = fb.velocity
-                r["effort"][k] = u
-                reason = _violation(ch, k, dt, pos, pr[k])
-                if reason is not None:
-                    stop, kind, detail = reason
-                    fault = Fault(kind.value, ch.axis.name, k, detail)
-                    raise _Stop
-                ch.axis.write(u)
+    signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
+    with signals as request:
+        bar = None
+        k = 0
+        started = False
+        try:
+            if request.signum:
+                raise _Interrupted  # before anything is enabled: nothing moves
+            started = True
+            _bring_up(channels)
+            bar = _progress(n, progress)
+            pacer = Pacer(dt) if pace else None
+            for k in range(n):
+                if request.signum:
+                    raise _Interrupted  # at a cycle boundary: no frame is half-handled
+                if pacer is not None:
+                    pacer.wait(k)
+                for i, ch in enumerate(channels):
+                    try:
+                        fb = ch.axis.read()
+                    except AxisError as exc:
+                        fault = Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc))
+                        raise
+                    if ch.axis.power is not enabled:
+                        fault = _left_operation(ch, k)
+                        raise AxisError(fault.detail, FaultKind(fault.kind))
+                    pr, vr, ar, jr = refs[i]
+                    pos = fb.position
+                    ref = Reference(pr[k], vr[k], ar[k], jr[k])
+                    u = ch.controller.step(ref, fb)
+                    lim = ch.limits
+                    if u > lim.max_effort or u < -lim.max_effort:
+                        u = lim.max_effort if u > 0 else -lim.max_effort
+                        clipped[i] += 1
+                    r = rec[i]
+                    r["pos_m"][k] = pos
+                    r["vel_m_s"][k] = fb.velocity
+                    r["effort"][k] = u
+                    reason = _violation(ch, k, dt, pos, pr[k])
+                    if reason is not None:
+                        stop, kind, detail = reason
+                        fault = Fault(kind.value, ch.axis.name, k, detail)
+                        raise _Stop
+                    ch.axis.write(u)
+                k_done = k + 1
+                if k == 0 and on_start is not None:
+                    on_start(n)
+                if bar is not None and k % 250 == 0:
+                    bar.update(min(250, n - bar.n))
+        except _Stop:
             k_done = k + 1
-            if k == 0 and on_start is not None:
-                on_start(n)
-            if bar is not None and k % 250 == 0:
-                bar.update(min(250, n - bar.n))
-    except _Stop:
-        k_done = k + 1
-        _safe_stop(channels, fault)
-    except KeyboardInterrupt:
-        stop, detail = StopReason.INTERRUPTED, "interrupted (KeyboardInterrupt: Ctrl-C or a signal)"
-        fault = Fault("interrupted", channels[0].axis.name, k, detail)
-        _safe_stop(channels, fault)
-    except AxisError as exc:
-        stop, detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
-        if fault is None:  # raised by the bring-up or by a write
-            fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, detail)
-        _safe_stop(channels, fault)
-    finally:
-        if bar is not None:
-            bar.close()
+            _safe_stop(channels, fault)
+        except (_Interrupted, KeyboardInterrupt):
+            stop = StopReason.INTERRUPTED
+            detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
+            fault = Fault("interrupted", channels[0].axis.name, k, detail)
+            if started:
+                _safe_stop(channels, fault)
+            else:
+                detail += " before the axes were enabled"
+                for ch in channels:
+                    fault.safe_after[ch.axis.name] = 0
+                    fault.safe_state[ch.axis.name] = ch.axis.power.value
+        except AxisError as exc:
+            stop, detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
+            if fault is None:  # raised by the bring-up or by a write
+                fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, detail)
+            _safe_stop(channels, fault)
+        finally:
+            if bar is not None:
+                bar.close()
     if stop is StopReason.COMPLETED and disable_at_end:
         for ch in channels:
             ch.axis.disable()
@@ -309,7 +333,7 @@ def run_channels(
             meta["safe_after_cycles"] = "unknown" if after is None else str(after)
         traces[ch.axis.name] = Trace(cols, meta)
     return RunResult(traces, stop, detail, k_done, {ch.axis.name: c for ch, c in zip(channels, clipped, strict=True)},
-                     fault)
+                     fault, started)
 
 
 class Pacer:
@@ -345,6 +369,10 @@ class Pacer:
 
 class _Stop(Exception):
     """Internal: a limit ended the run."""
+
+
+class _Interrupted(Exception):
+    """Internal: SIGINT/SIGTERM seen at a cycle boundary."""
 
 
 def _check_profile(ch: Channel, until: float) -> None:

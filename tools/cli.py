@@ -10,26 +10,17 @@ SIGTERM (the axis quick-stopped and disabled, the trace kept).
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drivectl import __version__
 
+if TYPE_CHECKING:
+    from drivectl.controllers.interrupt import StopRequest
+
 EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
-
-
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, delivered like Ctrl-C so the servo loop stops the axis the same way."""
-
-
-_signals_seen: list[int] = []
-
-
-def _on_sigterm(signum, frame):  # noqa: ARG001 - signal handler signature
-    _signals_seen.append(signum)
-    raise _Terminated()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -151,6 +142,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 # --------------------------------------------------------------------------------------------------
 def cmd_trace(args: argparse.Namespace) -> int:
+    from drivectl.controllers.interrupt import stop_on_signals
+
+    # for the whole command: a signal during set-up is seen before the axes are enabled (nothing moves),
+    # one during the run at the next cycle boundary, one while the trace is written does not tear it
+    with stop_on_signals() as request:
+        return _trace(args, request)
+
+
+def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
@@ -204,19 +204,16 @@ def cmd_trace(args: argparse.Namespace) -> int:
         machine.close()
         raise
 
-    previous = signal.signal(signal.SIGTERM, _on_sigterm)
-    _signals_seen.clear()
     try:
         def started(cycles: int) -> None:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
-                              progress=not args.quiet and sys.stderr.isatty())
+                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request)
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
-        signal.signal(signal.SIGTERM, previous)
         machine.close()
     out = Path(args.out)
     written = []
@@ -242,9 +239,9 @@ def cmd_trace(args: argparse.Namespace) -> int:
     for p in written:
         print(f"wrote {p}")
     if result.stop is StopReason.INTERRUPTED:
-        name = "SIGTERM" if signal.SIGTERM in _signals_seen else "SIGINT"
-        print(f"drivectl: interrupted by {name} after {result.cycles} cycles; axis quick-stopped and disabled, "
-              "trace kept", file=sys.stderr)
+        name = request.name or "SIGINT"
+        how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
+        print(f"drivectl: interrupted by {name} after {result.cycles} cycles; {how}, trace kept", file=sys.stderr)
         return 143 if name == "SIGTERM" else 130
     if result.fault is not None and result.stop is StopReason.FAULT:
         f = result.fault

@@ -19,12 +19,14 @@ it had died), bus-error and bus-off need the master's own bus (``drivectl trace 
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 import canopen
+
+if TYPE_CHECKING:
+    from drivectl.controllers.interrupt import StopRequest
 
 
 def add_emulate_parser(sub: Any) -> None:
@@ -48,6 +50,15 @@ def add_emulate_parser(sub: Any) -> None:
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
+    from drivectl.controllers.interrupt import stop_on_signals
+
+    # SIGINT/SIGTERM only end the receive loop: raised inside the bus's queue they could leave its lock
+    # held and hang the shutdown
+    with stop_on_signals() as stop:
+        return _emulate(args, stop)
+
+
+def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
     from drivectl.plant_emulator.node402 import EmulatedDrive
@@ -97,8 +108,6 @@ def cmd_emulate(args: argparse.Namespace) -> int:
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
                               initial_position=start, faults=injectors[name] if faults else None)
         drives.append(drive)
-    stop = []
-    signal.signal(signal.SIGTERM, lambda *a: stop.append(signal.SIGTERM))
     original_send = net.send_message
     if log is not None:
         def logged_send(can_id: int, data: bytes, remote: bool = False) -> None:
@@ -112,7 +121,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     print(f"emulating {nodes} on {where}", flush=True)
     print(f"point a master at it with: {hint}", flush=True)
     try:
-        while not stop:
+        while not stop.signum:
             msg = bus.recv(0.01)
             for drive in drives:
                 if drive.check_master():
@@ -127,8 +136,6 @@ def cmd_emulate(args: argparse.Namespace) -> int:
                 log.on_message_received(msg)
             if not msg.is_error_frame:
                 net.notify(msg.arbitration_id, msg.data, msg.timestamp)
-    except KeyboardInterrupt:
-        stop.append(signal.SIGINT)
     finally:
         for drive in drives:
             drive.close()

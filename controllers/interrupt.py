@@ -20,6 +20,8 @@ from contextlib import contextmanager
 #: the signals that stop a run safely: Ctrl-C and the service manager's stop
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
+_active: StopRequest | None = None  # the request the signals go to now, if any
+
 
 class StopRequest:
     """Set by a signal handler, read once per cycle: ``signum`` is 0 until the first signal."""
@@ -51,16 +53,30 @@ class StopRequest:
 @contextmanager
 def stop_on_signals(request: StopRequest | None = None,
                     signums: Sequence[int] = STOP_SIGNALS) -> Iterator[StopRequest]:
-    """Route ``signums`` into ``request`` (a new one if None) inside the block, then restore the
-    previous handlers. Outside the main thread handlers cannot be set, and no signal is delivered
-    there either: the request is yielded as it is."""
+    """Route ``signums`` into ``request`` inside the block, then restore the previous handlers.
+
+    With ``request=None`` an enclosing block's request is reused (a run inside a command that routes
+    the signals already sees a signal that came between two runs), else a new one is made. Outside
+    the main thread handlers cannot be set, and no signal is delivered there either: the request is
+    yielded as it is."""
+    global _active
+    if request is None and _active is not None:
+        yield _active
+        return
     request = StopRequest() if request is None else request
     if threading.current_thread() is not threading.main_thread():
         yield request
         return
     previous = {s: signal.signal(s, request.handle) for s in signums}
+    outer, _active = _active, request
     try:
         yield request
     finally:
+        _active = outer
         for s, handler in previous.items():
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+def exit_code(request: StopRequest) -> int:
+    """The shell's code for a command ended by the request's signal: 130 SIGINT, 143 SIGTERM."""
+    return 128 + request.signum

@@ -138,3 +138,42 @@ def test_second_signal_says_stopping_third_kills():
     assert proc.returncode == -signal.SIGINT, proc.stderr
     assert proc.stdout.splitlines() == ["1 SIGINT 1", "2 SIGINT 2"]
     assert proc.stderr.count("signal once more to kill at once") == 1
+
+
+def test_identify_interrupted_during_set_up_moves_nothing_and_exits_130(tmp_path, capsys, monkeypatch):
+    """The command routes the signals for its whole length: a signal after the bus is set up and
+    before the identification run is seen by the run before it enables anything (a run's own routing
+    would have missed it, and the run would have gone ahead)."""
+    from drivectl.controllers import servo
+    from drivectl.tools.cli import main
+
+    real_run, calls = servo.run, []
+
+    def run_after_a_signal(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            signal.raise_signal(signal.SIGINT)
+        return real_run(*args, **kwargs)
+
+    monkeypatch.setattr(servo, "run", run_after_a_signal)
+    before = signal.getsignal(signal.SIGINT)
+    rc = main(["identify", "--axis", "x", "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert rc == 130, err
+    assert len(calls) == 1
+    assert err.count("\n") == 1 and "interrupted (SIGINT) before the axes were enabled" in err
+    assert list(tmp_path.iterdir()) == []  # no identified plant written
+    assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_ctrl_c_in_offline_work_is_one_line_and_130(tmp_path, capsys, monkeypatch):
+    """Where no drive is involved (tune's search, explain, plot) Ctrl-C ends the work at once."""
+    from drivectl.tools import cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "cmd_plot", interrupted)
+    rc = cli.main(["plot", str(tmp_path / "x.csv")])
+    err = capsys.readouterr().err
+    assert rc == 130 and err == "drivectl: plot: interrupted\n"

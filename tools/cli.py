@@ -86,8 +86,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: commands that talk to drives: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into
+#: the bus I/O (drivectl.controllers.interrupt); elsewhere (tune's search, explain, plot) they end at once
+TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from drivectl.controllers.interrupt import exit_code, stop_on_signals
+
+    try:
+        if args.command not in TALKS_TO_DRIVES:
+            return _dispatch(args)
+        with stop_on_signals() as request:
+            rc = _dispatch(args)
+        if request.signum and rc not in (EXIT_OK, 130, 143):
+            return exit_code(request)  # it ended early because of the signal, and said why in its one line
+        return rc
+    except KeyboardInterrupt:
+        print(f"drivectl: {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
     from drivectl.driver.axis import AxisConfigError, AxisError
@@ -95,6 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
+    from drivectl.tools.identify import IdentificationError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
@@ -134,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except NotImplementedError as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except AxisError as exc:  # the bus or a drive refused (boot, identity, SDO abort)
+    except (AxisError, IdentificationError) as exc:  # the bus or a drive refused; the data cannot be fitted
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_STOPPED
     return EXIT_BAD_INPUT
@@ -144,8 +166,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 def cmd_trace(args: argparse.Namespace) -> int:
     from drivectl.controllers.interrupt import stop_on_signals
 
-    # for the whole command: a signal during set-up is seen before the axes are enabled (nothing moves),
-    # one during the run at the next cycle boundary, one while the trace is written does not tear it
+    # for the whole command (main's, when it routes them): a signal during set-up is seen before the axes
+    # are enabled (nothing moves), one during the run at the next cycle boundary, one while the trace is
+    # written does not tear it
     with stop_on_signals() as request:
         return _trace(args, request)
 
@@ -242,7 +265,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         name = request.name or "SIGINT"
         how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
         print(f"drivectl: interrupted by {name} after {result.cycles} cycles; {how}, trace kept", file=sys.stderr)
-        return 143 if name == "SIGTERM" else 130
+        return 128 + request.signum if request.signum else 130
     if result.fault is not None and result.stop is StopReason.FAULT:
         f = result.fault
         state = ", ".join(f"{n} {s}" + (f" after {f.safe_after[n]} cycle(s)" if f.safe_after.get(n) is not None

@@ -34,7 +34,6 @@ import errno
 import fcntl
 import logging
 import os
-import queue
 import select
 import struct
 import termios
@@ -45,6 +44,8 @@ from typing import Any
 
 import can
 from can.util import CAN_FD_DLC, len2dlc
+
+from drivectl.plant_emulator.served_bus import ServedBus
 
 log = logging.getLogger(__name__)
 
@@ -73,17 +74,15 @@ _READ_CHUNK = 4096
 _MAX_LINE = 256  # longest legal command is an FD frame, 10 + 128 + 4 chars
 
 
-class _Shutdown:
-    """Queue sentinel: wakes a blocked ``_recv_internal`` when the bus shuts down."""
-
-
-class SlcanAdapterBus(can.BusABC):
+class SlcanAdapterBus(ServedBus):
     """The SLCAN adapter: frames the client transmits come out of ``recv``, ``send`` goes to the client.
 
     Build it with :meth:`open_pty`; hand :attr:`tty_path` to the client. ``ack_frames`` sends LAWICEL's
     ``z\\r``/``Z\\r`` after each frame the client transmits (CANable firmware sends nothing; python-can
     accepts both).
     """
+
+    label = "slcan adapter"
 
     def __init__(
         self,
@@ -123,19 +122,15 @@ class SlcanAdapterBus(can.BusABC):
         self.btr: str | None = None
         self.overruns = 0
 
-        # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) can block for ever when a signal
-        # (SIGTERM to `drivectl emulate`) interrupts it just before its deadline
-        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue()
+        self._init_io()
         self._wlock = threading.Lock()  # guards _pending and every write to the master
         self._pending = bytearray()
         self._inbuf = bytearray()
-        self._stopping = False
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
-        self._thread = threading.Thread(target=self._io_loop, name=f"slcan-adapter {self.tty_path}", daemon=True)
         super().__init__(channel=self.tty_path, can_filters=can_filters, **kwargs)
-        self._thread.start()
+        self._start_io(self._io_loop, f"slcan-adapter {self.tty_path}")
 
     @classmethod
     def open_pty(cls, **kwargs: Any) -> SlcanAdapterBus:
@@ -178,8 +173,7 @@ class SlcanAdapterBus(can.BusABC):
         Never blocks: dropped while the channel is closed, and on overrun (client not reading), as by a
         real adapter; ``timeout`` is therefore unused.
         """
-        if self._is_shutdown:
-            raise can.CanOperationError("slcan adapter is shut down")
+        self._check_open()
         if not self._open:
             return
         line = self._format(msg)
@@ -192,24 +186,7 @@ class SlcanAdapterBus(can.BusABC):
                 return
             self._write_locked(line)
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        try:
-            item = self._rx.get(timeout=timeout)
-        except queue.Empty:
-            return None, False
-        if isinstance(item, _Shutdown):
-            self._rx.put(item)  # for any other waiter
-            raise can.CanOperationError("slcan adapter is shut down")
-        return item, False
-
-    def shutdown(self) -> None:
-        if self._is_shutdown:
-            return
-        super().shutdown()
-        self._stopping = True
-        self._wake()
-        self._thread.join(timeout=5.0)
-        self._rx.put(_Shutdown())
+    def _close_io(self) -> None:
         with self._wlock:
             for fd in (self._master, self._slave, self._wake_r, self._wake_w):
                 try:

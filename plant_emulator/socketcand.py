@@ -33,7 +33,6 @@ nobody listens to would.
 from __future__ import annotations
 
 import logging
-import queue
 import select
 import socket
 import threading
@@ -43,6 +42,8 @@ from typing import Any
 
 import can
 from can.util import CAN_FD_DLC, len2dlc
+
+from drivectl.plant_emulator.served_bus import ServedBus
 
 log = logging.getLogger(__name__)
 
@@ -66,17 +67,15 @@ class _Client:
     closing: bool = False  # close once `out` is flushed (after an error answer)
 
 
-class _Shutdown:
-    """Queue sentinel: wakes a blocked ``_recv_internal`` when the bus shuts down."""
-
-
-class SocketcandServerBus(can.BusABC):
+class SocketcandServerBus(ServedBus):
     """socketcand server on 127.0.0.1:``port`` (0: ephemeral, read :attr:`port`).
 
     ``channel``: the bus name clients must open; None accepts any name (python-can's client always sends
     one). ``raw_hold_off``: after answering ``< rawmode >``, frames for the client are held until it
     sends something or this many seconds pass, so no frame shares a TCP read with that ``< ok >``.
     """
+
+    label = "socketcand server"
 
     def __init__(
         self,
@@ -110,16 +109,12 @@ class SocketcandServerBus(can.BusABC):
         self._client_ready = threading.Condition(self._lock)
         self._client: _Client | None = None
         self._waiting: tuple[socket.socket, float] | None = None
-        # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) can block for ever when a signal
-        # (SIGTERM to `drivectl emulate`) interrupts it just before its deadline
-        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue()
-        self._stopping = False
+        self._init_io()
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self._thread = threading.Thread(target=self._serve, name=f"socketcand-server :{self.port}", daemon=True)
         super().__init__(channel=channel or "socketcand", can_filters=can_filters, **kwargs)
-        self._thread.start()
+        self._start_io(self._serve, f"socketcand-server :{self.port}")
 
     # ------------------------------------------------------------------ public
 
@@ -145,8 +140,7 @@ class SocketcandServerBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Hand ``msg`` to the client in raw mode; dropped without one. Never blocks (``timeout`` unused):
         bytes the socket does not take now are flushed by the server thread."""
-        if self._is_shutdown:
-            raise can.CanOperationError("socketcand server is shut down")
+        self._check_open()
         line = _format(msg)
         if line is None:
             return
@@ -164,24 +158,7 @@ class SocketcandServerBus(can.BusABC):
                 self._release_hold_locked(client)
             self._queue_locked(client, line)
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        try:
-            item = self._rx.get(timeout=timeout)
-        except queue.Empty:
-            return None, False
-        if isinstance(item, _Shutdown):
-            self._rx.put(item)  # for any other waiter
-            raise can.CanOperationError("socketcand server is shut down")
-        return item, False
-
-    def shutdown(self) -> None:
-        if self._is_shutdown:
-            return
-        super().shutdown()
-        self._stopping = True
-        self._wake()
-        self._thread.join(timeout=5.0)
-        self._rx.put(_Shutdown())
+    def _close_io(self) -> None:
         with self._lock:
             if self._client is not None:
                 self._client.sock.close()

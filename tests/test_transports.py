@@ -426,3 +426,30 @@ def measure_round_trip_rates(n: int = 2000) -> dict[str, float]:
 if __name__ == "__main__":
     for name, rate in measure_round_trip_rates().items():
         print(f"{name:>10}: {rate:8.0f} round trips/s ({2 * rate:8.0f} frames/s, {1e6 / rate:6.0f} us per trip)")
+
+
+@pytest.mark.parametrize("make, label", [(SlcanAdapterBus.open_pty, "slcan adapter"),
+                                         (lambda: SocketcandServerBus(port=0), "socketcand server")])
+def test_shutdown_wakes_a_blocked_recv_and_stops_the_io_thread(make, label):
+    """Both device-side buses share one shutdown path (served_bus.py): a reader blocked in recv is
+    woken with an error naming the bus, the I/O thread ends, send refuses, a second shutdown is a no-op."""
+    bus = make()
+    errors: list[BaseException] = []
+
+    def reader() -> None:
+        try:
+            bus.recv(timeout=GUARD)
+        except can.CanOperationError as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=reader)
+    t.start()
+    io_thread = bus._thread
+    assert io_thread is not None and io_thread.is_alive()
+    bus.shutdown()
+    t.join(GUARD)
+    assert not t.is_alive() and [str(e) for e in errors] == [f"{label} is shut down"]
+    assert not io_thread.is_alive()
+    with pytest.raises(can.CanOperationError, match=f"{label} is shut down"):
+        bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
+    bus.shutdown()

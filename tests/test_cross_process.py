@@ -113,10 +113,13 @@ def test_emulate_effect_trace_explain_end_to_end(tmp_path):
     assert res.gap_after < 0.2 * res.gap_before
 
 
-def test_killed_master_the_drive_stops_on_its_own(tmp_path):
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "hung"])
+def test_killed_or_hung_master_the_drive_stops_on_its_own(tmp_path, how):
     """Issue 7 point 5 (second half): SIGKILL the master mid-trace; the emulated drive consumes the
-    master's heartbeat (0x1016, 300 ms) and stops per 0x6007 (quick stop) by itself."""
+    master's heartbeat (0x1016, 300 ms) and stops per 0x6007 (quick stop) by itself. SIGSTOP stands
+    for a master that hangs with its port open (as a deadlock would): the same reaction."""
     emu = Emulator(tmp_path, "--slcan", profile="circle")
+    master = None
     try:
         tty = re.search(r"(/dev/\S+)", emu.line).group(1)
         cfg_path = tmp_path / "master.toml"
@@ -128,9 +131,11 @@ def test_killed_master_the_drive_stops_on_its_own(tmp_path):
         )
         line = master.stderr.readline()
         assert line.startswith("trace: axis x"), line
-        master.kill()
-        master.wait(30)
+        master.send_signal(how)
         reaction = emu.proc.stderr.readline()  # printed by the emulator when it reacts
     finally:
+        if master is not None:
+            master.kill()  # a stopped process dies on SIGKILL too
+            master.communicate(timeout=30)
         err = emu.stop()
     assert "master heartbeat lost: drive stopped (Switch On Disabled, 0x603F = 0x8130)" in reaction, reaction + err

@@ -3,8 +3,9 @@
 Axes x and y of the embedded machine (emulated CiA 402 drives on the virtual bus, CANopen masters)
 run back-to-back random moves; before most moves a random fault is armed on a random axis (every
 kind that leaves the master alive). Every fault that fired must be found in the traces (read back
-from disk), memory must stay flat (tracemalloc after a warm-up of 10 % and at the end), and no move
-may hang (a faulthandler guard dumps the stacks and exits after 120 s of wall time in one move).
+from disk), memory must stay flat (tracemalloc after a warm-up of 10 %, at ten points after it and
+at the end, each after a full garbage collection; the least-squares slope says what 100 more moves
+would add), and no move may hang (a faulthandler guard dumps the stacks and exits after 120 s of wall time in one move).
 tracemalloc slows the loop several times: 10 simulated minutes take 15-20 minutes here.
 
     python bench/soak.py [--minutes 10] [--seed 1] [--json]
@@ -34,6 +35,7 @@ def main() -> None:
         "memory_warm_kib": round(r.memory_warm_kib, 1),
         "memory_end_kib": round(r.memory_end_kib, 1),
         "memory_growth_kib": round(r.memory_growth_kib, 1),
+        "memory_slope_kib_per_100_moves": round(r.memory_slope_kib_per_100_moves, 2),
         "worst_move_wall_s": round(r.worst_move_wall_s, 3),
         "wall_s": round(r.wall_s, 1),
     }
@@ -50,6 +52,9 @@ def main() -> None:
         print(f"  NOT ACCOUNTED: {line}")
     print(f"memory (tracemalloc): {r.memory_warm_kib:.0f} KiB after warm-up, {r.memory_end_kib:.0f} KiB at the end "
           f"({r.memory_growth_kib:+.0f} KiB), peak {r.memory_peak_kib:.0f} KiB")
+    print("memory samples (moves: KiB, after a full collection): "
+          + ", ".join(f"{m}: {k:.0f}" for m, k in r.memory_samples))
+    print(f"slope {r.memory_slope_kib_per_100_moves:+.1f} KiB per 100 moves")
 
 
 if __name__ == "__main__":

@@ -15,5 +15,7 @@ def test_short_soak_accounts_for_every_fault(tmp_path):
     assert len(r.injected) >= 6  # a spread of kinds, not one fault ten times
     assert set(r.injected) <= set(SOAK_FAULTS)
     assert r.recoveries >= 5
-    # tracemalloc after the warm-up and at the end: what one move allocates, not a leak per move
-    assert r.memory_growth_kib < 1024, r.memory_growth_kib
+    # tracemalloc (after a full collection) from the warm-up to the end: the samples scatter by
+    # +-50 KiB (what one move holds at the moment); a leak per move would show as hundreds
+    assert len(r.memory_samples) >= 10
+    assert r.memory_growth_kib < 256, r.memory_samples

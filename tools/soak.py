@@ -12,14 +12,17 @@ random axis at a random time (every kind of the matrix that leaves the master al
   (``connect()``), a drive in Fault reset (verified edge), a stopped heartbeat or an offset encoder
   repaired; then re-enabled by the next move.
 
-Memory is measured with tracemalloc after a warm-up and at the end (the growth must be flat), and
-the wall time of every move is kept (a hang shows as a move that never ends: ``hang_guard_s``
+Memory is measured with tracemalloc (after a full garbage collection: cyclic garbage waiting for
+the collector is not a leak) after a warm-up, at ten points after it and at the end: the growth
+must be flat, and the least-squares slope over the samples says per move what a leak would cost.
+The wall time of every move is kept (a hang shows as a move that never ends: ``hang_guard_s``
 aborts the soak with a traceback dump).
 """
 
 from __future__ import annotations
 
 import faulthandler
+import gc
 import random
 import sys
 import tempfile
@@ -56,12 +59,26 @@ class SoakResult:
     memory_warm_kib: float = 0.0
     memory_end_kib: float = 0.0
     memory_peak_kib: float = 0.0
+    #: (moves, KiB) from the warm-up to the end
+    memory_samples: list[tuple[int, float]] = field(default_factory=list)
     worst_move_wall_s: float = 0.0
     wall_s: float = 0.0
 
     @property
     def memory_growth_kib(self) -> float:
         return self.memory_end_kib - self.memory_warm_kib
+
+    @property
+    def memory_slope_kib_per_100_moves(self) -> float:
+        """Least-squares slope of the memory samples: what 100 more moves would add."""
+        if len(self.memory_samples) < 2:
+            return 0.0
+        n = len(self.memory_samples)
+        mx = sum(m for m, _ in self.memory_samples) / n
+        my = sum(k for _, k in self.memory_samples) / n
+        sxx = sum((m - mx) ** 2 for m, _ in self.memory_samples)
+        sxy = sum((m - mx) * (k - my) for m, k in self.memory_samples)
+        return 100.0 * sxy / sxx if sxx else 0.0
 
     @property
     def all_accounted(self) -> bool:
@@ -89,7 +106,7 @@ def run_soak(simulated_s: float = 600.0, *, seed: int = 1, fault_probability: fl
     out = Path(out_dir or tmp.name)
     t_start = time.perf_counter()
     tracemalloc.start(1)
-    warm_taken = False
+    next_sample = warmup_fraction * simulated_s
     machine = open_machine(cfg, names, faults=[])
     try:
         ctrls = {n: make_controller(cfg.axis(n).controller, cfg.cycle_s, cfg.axis(n).controller_settings,
@@ -129,14 +146,15 @@ def run_soak(simulated_s: float = 600.0, *, seed: int = 1, fault_probability: fl
             if armed is not None:
                 _account(res, armed, result, traces, machine)
             res.recoveries += _recover(machine, names, PowerState)
-            if not warm_taken and res.simulated_s >= warmup_fraction * simulated_s:
-                res.memory_warm_kib = tracemalloc.get_traced_memory()[0] / 1024
-                warm_taken = True
+            if res.simulated_s >= next_sample:
+                res.memory_samples.append((res.moves, _traced_kib()))
+                next_sample += (1.0 - warmup_fraction) * simulated_s / 10
             if progress:
                 print(f"\rsoak: {res.simulated_s:7.1f} / {simulated_s:g} s simulated, {res.moves} moves, "
                       f"{sum(res.injected.values())} faults", end="", file=sys.stderr, flush=True)
-        current, peak = tracemalloc.get_traced_memory()
-        res.memory_end_kib, res.memory_peak_kib = current / 1024, peak / 1024
+        res.memory_samples.append((res.moves, _traced_kib()))
+        res.memory_warm_kib, res.memory_end_kib = res.memory_samples[0][1], res.memory_samples[-1][1]
+        res.memory_peak_kib = tracemalloc.get_traced_memory()[1] / 1024
     finally:
         faulthandler.cancel_dump_traceback_later()
         tracemalloc.stop()
@@ -147,6 +165,11 @@ def run_soak(simulated_s: float = 600.0, *, seed: int = 1, fault_probability: fl
             print(file=sys.stderr)
     res.wall_s = time.perf_counter() - t_start
     return res
+
+
+def _traced_kib() -> float:
+    gc.collect()  # garbage in reference cycles waits for the collector: not a leak
+    return tracemalloc.get_traced_memory()[0] / 1024
 
 
 def _account(res: SoakResult, armed, result, traces, machine) -> None:

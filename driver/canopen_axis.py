@@ -20,6 +20,7 @@ receive (bus error, bus-off). A drive fault arrives as the statusword (and EMCY,
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,6 +105,7 @@ class CanopenAxis:
         tpdo_timeout: float = 0.1,
         max_lost_cycles: int = 3,
         rpdo_timeout_ms: int | None = None,
+        max_effort: float = math.inf,
     ):
         self.name = name
         self.dt = dt
@@ -119,6 +121,12 @@ class CanopenAxis:
         if max_lost_cycles < 0:
             raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
         self.max_lost_cycles = max_lost_cycles
+        if not max_effort > 0:
+            raise ValueError(f"axis {name}: max_effort: must be > 0, got {max_effort}")
+        # the drive clips the torque to 0x6072 on its own: the configured limit holds even if a
+        # setpoint ever passed the master's clip (unlimited: the drive keeps its own setting)
+        self.max_torque_permille = (None if math.isinf(max_effort)
+                                    else max(1, min(round(max_effort * 1000.0 / effort_scale.rated), 0x7FFF)))
         # the drive's RPDO deadline (0x1400:05): two cycles unless configured
         self.rpdo_timeout_ms = round(2 * dt * 1000) if rpdo_timeout_ms is None else rpdo_timeout_ms
         self.lockstep = isinstance(network, LockstepNetwork)
@@ -242,6 +250,8 @@ class CanopenAxis:
         self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
         self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
         self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
+        if self.max_torque_permille is not None:
+            self._sdo(cia402.MAX_TORQUE, value=self.max_torque_permille)
         # the drive watches the master's heartbeat (0x1016) and reacts per 0x6007 when it stops;
         # allow three periods of the master's heartbeat before it counts as lost
         master_ms = round(self.clock.heartbeat_cycles * self.dt * 1000)

@@ -9,8 +9,9 @@ toolbox lacks (see ../shared/DESIGN.md, "Known traps"):
 * the PDO mapping read back from the object dictionary whenever the master remaps by SDO;
 * RPDO data written into the object dictionary (an SDO upload of 0x6040/0x6071 shows them);
 * on each SYNC: the drive (plant_emulator/drive.py, shared with SimAxis) steps the plant one cycle
-  with the setpoint latched at the previous SYNC, takes the controlword and setpoint received since,
-  and the TPDOs go out (position actual in counts, statusword, velocity and torque actual);
+  with the setpoint latched at the previous SYNC (clipped to the drive's max torque, 0x6072, as a
+  real drive does), takes the controlword and setpoint received since, and the TPDOs go out
+  (position actual in counts, statusword, velocity and torque actual);
 * EMCY on a fault (canopen's EmcyProducer), the master's heartbeat consumed (0x1016) and the RPDO
   deadline monitored (0x1400:05, CiA 301): a lost master is answered per 0x6007 on the drive's own;
 * faults injected on cue (plant_emulator/faults.py).
@@ -92,6 +93,8 @@ class EmulatedDrive:
         self.nmt = NmtState.INITIALISING
         self.controlword = 0
         self.setpoint = 0  # per mille of the rated effort, as received
+        # the drive's own torque limit (0x6072, per mille of rated): a setpoint beyond it is clipped
+        self.max_torque = self._od_default(cia402.MAX_TORQUE)
         self.mode = 0
         self._sync_cob = SYNC_COB_ID
         self._heartbeat_cycles = 0
@@ -138,6 +141,7 @@ class EmulatedDrive:
             self.node.data_store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", self.node_id)
             self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
             self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION)
+            self.max_torque = self._od_default(cia402.MAX_TORQUE)
             self.mode = 0
             d = self.drive
             d.power, d.applied, d.error_code = cia402.PowerState.SWITCH_ON_DISABLED, 0.0, 0
@@ -178,6 +182,8 @@ class EmulatedDrive:
             if mode <= 0 or not supported & cia402.supported_mode_bit(cia402.Mode(mode)):
                 raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
             self.mode = mode
+        elif index == cia402.MAX_TORQUE:
+            self.max_torque = struct.unpack("<H", data)[0]
         elif index == cia402.QUICK_STOP_OPTION:
             self.drive.quick_stop_option = struct.unpack("<h", data)[0]
         elif index == cia402.CONSUMER_HEARTBEAT_TIME and subindex == 1:
@@ -311,7 +317,8 @@ class EmulatedDrive:
         faults = self.faults
         if faults is not None and faults.held:
             self._send_held()  # late frames that no RPDO flushed go out before this cycle's
-        d.sync(self.controlword, self.scale.from_permille(self.setpoint))
+        sp, limit = self.setpoint, self.max_torque
+        d.sync(self.controlword, self.scale.from_permille(limit if sp > limit else -limit if sp < -limit else sp))
         if self.internal_limit and d.power is not cia402.PowerState.FAULT and \
                 d.power is not cia402.PowerState.FAULT_REACTION_ACTIVE:
             self.internal_limit = False  # the fault was reset

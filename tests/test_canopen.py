@@ -218,6 +218,57 @@ def test_rpdo_data_lands_in_the_object_dictionary(bench):
     assert ax.node.sdo[cia402.CONTROLWORD].raw == ax._controlword
 
 
+def _applied_after(ax: CanopenAxis, drive: EmulatedDrive, effort: float) -> float:
+    """Command ``effort`` straight to the drive (past any master-side clip) and read what it applied."""
+    for _ in range(3):
+        ax.read()
+        ax.write(effort)
+    ax.read()
+    return drive.drive.applied
+
+
+def test_the_drive_clips_the_torque_to_the_configured_max_torque(bench):
+    """limits.max_effort goes to the drive as 0x6072: a second limit, in the drive, on its own."""
+    drive = bench.drive(1)
+    ax = bench.axis(1, max_effort=25.0)  # 250 per mille of 100 N
+    assert ax.node.sdo[cia402.MAX_TORQUE].raw == 250 and drive.max_torque == 250
+    ax.enable()
+    assert _applied_after(ax, drive, 12.3) == pytest.approx(12.3)  # inside: as commanded
+    assert _applied_after(ax, drive, 80.0) == pytest.approx(25.0)  # beyond: the drive's limit
+    assert _applied_after(ax, drive, -80.0) == pytest.approx(-25.0)
+    assert ax.node.sdo[cia402.TORQUE_ACTUAL].raw == -250  # and reports it so (0x6077)
+    # an NMT reset brings back the EDS default (32767: no limit inside 0x6071's range) until connect()
+    ax.disable()
+    drive.reset()
+    assert drive.max_torque == 32767
+    ax.connect()
+    assert drive.max_torque == 250
+
+
+def test_the_machine_writes_each_axis_limit_to_its_drive():
+    cfg = load_config(None)
+    machine = open_machine(cfg, ["x", "z"], faults=[])
+    try:
+        for n in ("x", "z"):
+            want = round(cfg.axis(n).limits.max_effort * 1000 / cfg.axis(n).rated_effort)
+            assert machine.drives[n].max_torque == want == machine.axes[n].max_torque_permille
+        assert machine.drives["x"].max_torque == 20000 and machine.drives["z"].max_torque == 30000
+    finally:
+        machine.close()
+
+
+def test_unlimited_max_effort_leaves_the_drives_own_limit(bench):
+    drive = bench.drive(1)
+    ax = bench.axis(1)  # max_effort unlimited: 0x6072 not written, the drive's own value holds
+    assert ax.max_torque_permille is None and drive.max_torque == 32767
+    ax.enable()
+    assert _applied_after(ax, drive, 150.0) == pytest.approx(150.0)
+    ax.node.sdo[cia402.MAX_TORQUE].raw = 1000  # set on the drive by its own tool: rated
+    assert _applied_after(ax, drive, 150.0) == pytest.approx(100.0)
+    with pytest.raises(ValueError, match="max_effort: must be > 0"):
+        bench.axis(2, connect=False, max_effort=0.0)
+
+
 @pytest.mark.parametrize(
     ("controller", "plant", "settings"),
     [

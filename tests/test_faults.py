@@ -161,7 +161,8 @@ def test_following_error_window_and_soft_limits_from_the_drive_objects(tmp_path)
     """Point 4: limits the configuration leaves out come from 0x6065/0x6066 and 0x607D."""
     text = DEFAULT_CONFIG_TOML
     for line in ("position_m = [-0.1, 0.1]        # soft limits\n", "following_error_m = 0.001       # window\n",
-                 "following_time_s = 0.01\n", "max_effort = 2000.0             # N, the command is clipped here\n"):
+                 "following_time_s = 0.01\n",
+                 "max_effort = 2000.0             # N, clipped here and by the drive (0x6072)\n"):
         assert line in text
         text = text.replace(line, "", 1)
     path = tmp_path / "m.toml"

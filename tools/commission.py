@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -139,6 +140,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
+    from drivectl.plant_emulator.models import load_plant
     from drivectl.tools.machine import open_bus_session
 
     cfg = load_config(args.config)
@@ -159,6 +161,7 @@ def cmd_status(args: argparse.Namespace) -> int:
                 mode = node.sdo[cia402.MODES_OF_OPERATION_DISPLAY].raw
                 code = node.sdo[cia402.ERROR_CODE].raw
                 counts = node.sdo[cia402.POSITION_ACTUAL].raw
+                max_torque = node.sdo[cia402.MAX_TORQUE].raw
             except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
                 print(f"drivectl: axis {name}: node {ac.node_id}: no answer to SDO ({exc})", file=sys.stderr)
                 return 1
@@ -167,6 +170,7 @@ def cmd_status(args: argparse.Namespace) -> int:
                 mode_text = cia402.Mode(mode).name
             except ValueError:
                 mode_text = str(mode)
+            unit = load_plant(ac.plant).effort_unit
             out[name] = {
                 "node": ac.node_id,
                 "nmt": NMT_NAMES.get(session.nmt_seen.get(ac.node_id, -1), "unknown (no heartbeat seen)"),
@@ -176,6 +180,11 @@ def cmd_status(args: argparse.Namespace) -> int:
                 "error_code": f"0x{code:04X}",
                 "error": cia402.error_text(code),
                 "position_m": counts * ac.encoder_m_per_count,
+                # the drive's own limit now, and what connecting writes there (limits.max_effort)
+                "max_torque_permille": max_torque,
+                "max_torque": max_torque * ac.rated_effort / 1000.0,
+                "max_effort": ac.limits.max_effort if math.isfinite(ac.limits.max_effort) else None,
+                "effort_unit": unit,
                 "last_emcy": emcy[-1].hex() if emcy else None,
             }
     if args.json:
@@ -188,6 +197,11 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(f"  mode         {s['mode']}")
         print(f"  error        {s['error_code']}: {s['error']}")
         print(f"  position     {s['position_m'] * 1e3:.6f} mm")
+        u = s["effort_unit"]
+        limit = "unlimited: the drive's own is kept" if s["max_effort"] is None else \
+            f"{s['max_effort']:g} {u} is written when an axis connects"
+        print(f"  max torque   {s['max_torque']:g} {u} (0x6072 = {s['max_torque_permille']} per mille; "
+              f"limits.max_effort {limit})")
         print(f"  last EMCY    {s['last_emcy'] or 'none'}")
     return 0
 

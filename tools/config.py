@@ -44,7 +44,7 @@ law = 14                        # paper 004 gain law (11..14)
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits
-max_effort = 2000.0             # N, the command is clipped here
+max_effort = 2000.0             # N, clipped here and by the drive (0x6072)
 following_error_m = 0.001       # window
 following_time_s = 0.01
 max_speed_m_s = 2.0             # a position step faster than this between two samples is implausible

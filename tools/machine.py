@@ -192,7 +192,8 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
         axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
-                           max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms)
+                           max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms,
+                           max_effort=ac.limits.max_effort)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)

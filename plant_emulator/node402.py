@@ -142,6 +142,7 @@ class EmulatedDrive:
             self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
             self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION)
             self.max_torque = self._od_default(cia402.MAX_TORQUE)
+            self.drive.quick_stop_option = self._od_default(cia402.QUICK_STOP_OPTION)
             self.mode = 0
             d = self.drive
             d.power, d.applied, d.error_code = cia402.PowerState.SWITCH_ON_DISABLED, 0.0, 0

@@ -245,6 +245,22 @@ def test_the_drive_clips_the_torque_to_the_configured_max_torque(bench):
     assert drive.max_torque == 250
 
 
+def test_a_node_reset_restores_every_parameter_the_master_wrote(bench):
+    """NMT reset node: the application parameters go back to the EDS defaults, as on a real drive."""
+    drive = bench.drive(1)
+    ax = bench.axis(1, max_effort=25.0)
+    defaults = {i: drive._od_default(i) for i in (cia402.QUICK_STOP_OPTION, cia402.MAX_TORQUE,
+                                                  cia402.PRODUCER_HEARTBEAT_TIME)}
+    ax.node.sdo[cia402.QUICK_STOP_OPTION].raw = 6
+    ax.node.sdo[cia402.PRODUCER_HEARTBEAT_TIME].raw = 250
+    assert (drive.drive.quick_stop_option, drive.max_torque, drive._heartbeat_ms) == (6, 250, 250)
+    drive.reset()
+    assert drive.drive.quick_stop_option == defaults[cia402.QUICK_STOP_OPTION] != 6
+    assert drive.max_torque == defaults[cia402.MAX_TORQUE] != 250
+    assert drive._heartbeat_ms == defaults[cia402.PRODUCER_HEARTBEAT_TIME] != 250
+    assert ax.node.sdo[cia402.QUICK_STOP_OPTION].raw == defaults[cia402.QUICK_STOP_OPTION]
+
+
 def test_the_machine_writes_each_axis_limit_to_its_drive():
     cfg = load_config(None)
     machine = open_machine(cfg, ["x", "z"], faults=[])

@@ -164,6 +164,9 @@ class CanopenAxis:
         self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(TPDO_ENTRIES))]
         self._fresh = [False] * len(TPDO_ENTRIES)
         self._raw = [(0, 0), (0, 0)]
+        # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
+        # reset does not stack a second handler per TPDO (each would count a late frame again)
+        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(TPDO_ENTRIES))]
         self._arrived = threading.Event()
         self._last_heartbeat = 0
         self.heartbeat_state: int | None = None
@@ -176,8 +179,8 @@ class CanopenAxis:
         self._boot()
         self._check_identity()
         self._configure()
-        for i, cob in enumerate(self._tpdo_cob):
-            self.network.subscribe(cob, self._tpdo_callback(i))
+        for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
+            self.network.subscribe(cob, handler)
         # heartbeat consumer on the master's side: the drive's heartbeat counts in bus cycles
         self._last_heartbeat = self.clock.cycle
         self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
@@ -285,6 +288,11 @@ class CanopenAxis:
                 else:
                     pdo.enabled = False
                 pdo.save()
+                if maps is node.tpdo and pdo.enabled:
+                    # save() subscribed canopen's own decoder (a lock and notify_all per frame); the
+                    # cycle decodes the TPDOs itself (_tpdo_callback): keep the per-cycle path one call
+                    if pdo.on_message in self.network.subscribers.get(pdo.cob_id, ()):
+                        self.network.unsubscribe(pdo.cob_id, pdo.on_message)
 
     def read_back_mapping(self) -> dict[str, list[int]]:
         """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
@@ -436,9 +444,11 @@ class CanopenAxis:
         return self.error_code
 
     def close(self) -> None:
-        for cob in self._tpdo_cob:
-            self.network.unsubscribe(cob)
-        self.network.unsubscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
+        subs = self.network.subscribers
+        for cob, handler in [*zip(self._tpdo_cob, self._tpdo_handlers, strict=True),
+                             (HEARTBEAT_BASE + self.node_id, self._on_heartbeat)]:
+            if handler in subs.get(cob, ()):  # only ours: another listener on the COB-ID stays
+                self.network.unsubscribe(cob, handler)
         if self._connected:
             try:
                 self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))

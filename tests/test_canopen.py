@@ -245,6 +245,27 @@ def test_the_drive_clips_the_torque_to_the_configured_max_torque(bench):
     assert drive.max_torque == 250
 
 
+def test_reconnecting_after_a_reset_keeps_one_handler_per_tpdo(bench):
+    """A drive reset and connect() again, many times: a late TPDO still counts once, nothing piles up."""
+    drive = bench.drive(1)
+    ax = bench.axis(1)
+    for _ in range(5):
+        drive.reset(spontaneous=True)
+        ax.connect()
+    cob = ax._tpdo_cob[0]
+    ax.read()  # this cycle's TPDOs used: one arriving now is late
+    before = ax.late_total
+    bench.master.notify(cob, bytes(6), 0.0)
+    assert ax.late_total == before + 1
+    # one handler per TPDO, ours (canopen's PdoMap decoder, subscribed by its save(), is taken off)
+    assert bench.master.subscribers[cob] == [ax._tpdo_handlers[0]]
+    bench.master.subscribe(cob, seen := [].append)  # someone else listening on the same COB-ID
+    ax.close()
+    assert seen in bench.master.subscribers[cob] and ax._tpdo_handlers[0] not in bench.master.subscribers[cob]
+    assert HEARTBEAT_BASE + 1 not in bench.master.subscribers or \
+        ax._on_heartbeat not in bench.master.subscribers[HEARTBEAT_BASE + 1]
+
+
 def test_a_node_reset_restores_every_parameter_the_master_wrote(bench):
     """NMT reset node: the application parameters go back to the EDS defaults, as on a real drive."""
     drive = bench.drive(1)

@@ -125,8 +125,7 @@ class CanopenAxis:
             raise ValueError(f"axis {name}: max_effort: must be > 0, got {max_effort}")
         # the drive clips the torque to 0x6072 on its own: the configured limit holds even if a
         # setpoint ever passed the master's clip (unlimited: the drive keeps its own setting)
-        self.max_torque_permille = (None if math.isinf(max_effort)
-                                    else max(1, min(round(max_effort * 1000.0 / effort_scale.rated), 0x7FFF)))
+        self.max_torque_permille = None if math.isinf(max_effort) else max(1, effort_scale.to_permille(max_effort))
         # the drive's RPDO deadline (0x1400:05): two cycles unless configured
         self.rpdo_timeout_ms = round(2 * dt * 1000) if rpdo_timeout_ms is None else rpdo_timeout_ms
         self.lockstep = isinstance(network, LockstepNetwork)

@@ -140,6 +140,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
+    from drivectl.driver.units import EffortScale
     from drivectl.plant_emulator.models import load_plant
     from drivectl.tools.machine import open_bus_session
 
@@ -182,7 +183,7 @@ def cmd_status(args: argparse.Namespace) -> int:
                 "position_m": counts * ac.encoder_m_per_count,
                 # the drive's own limit now, and what connecting writes there (limits.max_effort)
                 "max_torque_permille": max_torque,
-                "max_torque": max_torque * ac.rated_effort / 1000.0,
+                "max_torque": EffortScale(ac.rated_effort).from_permille(max_torque),
                 "max_effort": ac.limits.max_effort if math.isfinite(ac.limits.max_effort) else None,
                 "effort_unit": unit,
                 "last_emcy": emcy[-1].hex() if emcy else None,

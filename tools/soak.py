@@ -56,13 +56,19 @@ class SoakResult:
     accounted: Counter = field(default_factory=Counter)
     unaccounted: list[str] = field(default_factory=list)
     recoveries: int = 0
-    memory_warm_kib: float = 0.0
-    memory_end_kib: float = 0.0
     memory_peak_kib: float = 0.0
     #: (moves, KiB) from the warm-up to the end
     memory_samples: list[tuple[int, float]] = field(default_factory=list)
     worst_move_wall_s: float = 0.0
     wall_s: float = 0.0
+
+    @property
+    def memory_warm_kib(self) -> float:
+        return self.memory_samples[0][1] if self.memory_samples else 0.0
+
+    @property
+    def memory_end_kib(self) -> float:
+        return self.memory_samples[-1][1] if self.memory_samples else 0.0
 
     @property
     def memory_growth_kib(self) -> float:
@@ -153,7 +159,6 @@ def run_soak(simulated_s: float = 600.0, *, seed: int = 1, fault_probability: fl
                 print(f"\rsoak: {res.simulated_s:7.1f} / {simulated_s:g} s simulated, {res.moves} moves, "
                       f"{sum(res.injected.values())} faults", end="", file=sys.stderr, flush=True)
         res.memory_samples.append((res.moves, _traced_kib()))
-        res.memory_warm_kib, res.memory_end_kib = res.memory_samples[0][1], res.memory_samples[-1][1]
         res.memory_peak_kib = tracemalloc.get_traced_memory()[1] / 1024
     finally:
         faulthandler.cancel_dump_traceback_later()

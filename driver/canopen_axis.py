@@ -196,7 +196,13 @@ class CanopenAxis:
         self._connected = True
 
     def _wait(self, event: threading.Event, what: str) -> None:
-        # in lockstep the reply was delivered during the send; otherwise wait for the notifier
+        # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
+        # comes some tens of ms after the reset); otherwise wait for the notifier
+        if self.lockstep:
+            for _ in range(round(self.timeout / self.dt)):
+                if event.is_set():
+                    break
+                self.network.lockstep.advance(self.dt)
         if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
 

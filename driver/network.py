@@ -13,6 +13,7 @@ from __future__ import annotations
 import itertools
 import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -50,6 +51,15 @@ class Lockstep:
     def __init__(self) -> None:
         self.networks: list[LockstepNetwork] = []
         self._settling = False
+        #: the devices' own clocks (emulated drives): advance(seconds) lets simulated time pass
+        self.clocks: list[Callable[[float], None]] = []
+
+    def advance(self, seconds: float) -> None:
+        """Let ``seconds`` of simulated time pass on every device clock (a master waiting for a boot-up:
+        in lockstep nothing else makes time go on), then deliver what that sent."""
+        for clock in list(self.clocks):
+            clock(seconds)
+        self.settle()
 
     def settle(self) -> None:
         """Deliver every pending frame to its network until all buses are quiet."""
@@ -105,7 +115,9 @@ class LockstepNetwork(canopen.Network):
             got = True
             if log is not None:
                 log.on_message_received(msg)
-            if not msg.is_error_frame:
+            if msg.is_remote_frame:
+                deliver_remote(self, msg.arbitration_id)  # never as an empty data frame
+            elif not msg.is_error_frame:
                 notify(msg.arbitration_id, msg.data, msg.timestamp)
         return got
 
@@ -118,6 +130,13 @@ class LockstepNetwork(canopen.Network):
         if self.bus is not None:
             self.bus.shutdown()
         self.bus = None
+
+
+def deliver_remote(network: canopen.Network, can_id: int) -> None:
+    """A remote frame (RTR) to the callbacks in ``network.remote_subscribers`` (canopen's notify() has no
+    RTR bit, so a remote frame handed to it would look like an empty data frame)."""
+    for callback in list(network.__dict__.get("remote_subscribers", {}).get(can_id, ())):
+        callback(can_id)
 
 
 def threaded_network(bus: can.BusABC) -> canopen.Network:

@@ -47,6 +47,11 @@ def add_emulate_parser(sub: Any) -> None:
     e.add_argument("--bus-log", metavar="FILE", help="record every frame (python-can Logger, format by suffix)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault TIME s after the drive is enabled (repeatable; see README, Faults)")
+    e.add_argument("--boot-delay-ms", type=float, default=None, metavar="MS",
+                   help="boot-up message this long after power-on or an NMT reset (default 50 ms)")
+    e.add_argument("--sync-loss-ms", type=float, default=None, metavar="MS",
+                   help="no SYNC for this long: the drives run on their own clock (default: the master "
+                        "heartbeat consumer time, 300 ms; about two cycles for a master paced in real time)")
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
@@ -59,9 +64,10 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 
 def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
+    from drivectl.driver import cia402
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
-    from drivectl.plant_emulator.node402 import EmulatedDrive
+    from drivectl.plant_emulator.node402 import EmulatedDrive, deliver
     from drivectl.tools.config import load_config
     from drivectl.tools.machine import axis_profile, plant_specs
 
@@ -99,6 +105,15 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         return 2
     net = canopen.Network(bus)  # no notifier: this process pumps its own bus, in order
     log = can.Logger(args.bus_log) if args.bus_log else None
+    for flag, value in (("--boot-delay-ms", args.boot_delay_ms), ("--sync-loss-ms", args.sync_loss_ms)):
+        if value is not None and not (value >= 0 and value < 1e6):
+            print(f"drivectl: emulate: {flag}: expected a number of ms >= 0, got {value!r}", file=sys.stderr)
+            return 2
+    clock: dict[str, float] = {}
+    if args.boot_delay_ms is not None:
+        clock["boot_delay_ms"] = args.boot_delay_ms
+    if args.sync_loss_ms is not None:
+        clock["sync_loss_ms"] = args.sync_loss_ms
     drives = []
     for i, name in enumerate(names):
         ac = cfg.axis(name)
@@ -106,7 +121,7 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         start = axis_profile(cfg, name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
-                              initial_position=start, faults=injectors[name] if faults else None)
+                              initial_position=start, faults=injectors[name] if faults else None, **clock)
         drives.append(drive)
     original_send = net.send_message
     if log is not None:
@@ -123,19 +138,19 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
     try:
         while not stop.signum:
             msg = bus.recv(0.01)
+            # the frame first, then the drives' clocks up to now: a reset that arrived before a boot-up
+            # fell due restarts the boot (the other order would send a stale boot-up after the reset)
+            if msg is not None and not any(inj.deaf for inj in injectors.values()):
+                # (master-dead injected: nothing from the master reaches the drives any more)
+                if log is not None:
+                    log.on_message_received(msg)
+                deliver(net, msg)
             for drive in drives:
-                if drive.check_master():
-                    print(f"node {drive.node_id}: master heartbeat lost: drive stopped "
+                code = drive.check_master()
+                if code:
+                    print(f"node {drive.node_id}: master lost ({cia402.error_text(code)}): drive stopped "
                           f"({drive.drive.power.value}, 0x603F = 0x{drive.drive.error_code:04X})",
                           file=sys.stderr, flush=True)
-            if msg is None:
-                continue
-            if any(inj.deaf for inj in injectors.values()):
-                continue  # master-dead injected: nothing from the master reaches the drives any more
-            if log is not None:
-                log.on_message_received(msg)
-            if not msg.is_error_frame:
-                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
     finally:
         for drive in drives:
             drive.close()

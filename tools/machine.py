@@ -277,6 +277,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
             session.drives[name] = drive
         for drive in session.drives.values():
             drive.boot()
+        lockstep.advance(0.1)  # power-on: the drives take some tens of ms to boot
         return session
     kwargs: dict[str, Any] = {"host": b.host, "port": b.port} if b.interface == "socketcand" else {}
     net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **kwargs))

@@ -116,12 +116,13 @@ class AxisControl:
                             "fault_reset first")
 
         def go() -> None:
-            rt.enable_failed = ""
-            rt.ch.axis.enable()
-            rt.state = AxisState.ENABLING
+            if rt.state is AxisState.ENABLING:
+                rt.ch.axis.enable()
 
+        rt.enable_failed = ""
+        rt.state = AxisState.ENABLING  # before the loop takes it: waiting below must not end at once
         loop.submit(go)
-        if not loop.run_until(lambda: rt.state is not AxisState.ENABLING, timeout):
+        if not self._m.run_until(lambda: rt.state is not AxisState.ENABLING, timeout):
             loop.submit(lambda: self._m.loop._disable(rt, "enable timed out"))
             raise AxisError(f"axis {self.name}: not Operation Enabled within {timeout:g} s (drive reports "
                             f"{rt.ch.axis.power.value})")
@@ -133,7 +134,7 @@ class AxisControl:
         loop = self._m.loop
         loop.submit(lambda: loop._disable(self._rt, "disabled"))
         axis = self._rt.ch.axis
-        if not loop.run_until(lambda: axis.power not in (PowerState.OPERATION_ENABLED,
+        if not self._m.run_until(lambda: axis.power not in (PowerState.OPERATION_ENABLED,
                                                          PowerState.QUICK_STOP_ACTIVE), timeout):
             raise AxisError(f"axis {self.name}: still {axis.power.value} {timeout:g} s after disable: it may still "
                             "be powered")
@@ -143,7 +144,7 @@ class AxisControl:
         loop = self._m.loop
         axis = self._rt.ch.axis
         loop.submit(axis.fault_reset)
-        if not loop.run_until(lambda: axis.power not in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE),
+        if not self._m.run_until(lambda: axis.power not in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE),
                               timeout):
             err = self.error
             raise AxisError(f"axis {self.name}: still in Fault {timeout:g} s after the reset"
@@ -237,7 +238,7 @@ class AxisControl:
         handle = self._command("jog", velocity, apply)
         return handle
 
-    def stop(self) -> Move:
+    def stop(self, why: str = "stopped") -> Move:
         """A controlled stop (ruckig, within the motion limits); the axis then holds where it stopped."""
         rt = self._rt
         handle = Move(self._m.loop, self.name, "stop")
@@ -248,7 +249,7 @@ class AxisControl:
                 return
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
-                old._end("stopped", rt, "stopped")
+                old._end("stopped", rt, why)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration
@@ -405,6 +406,7 @@ class Machine:
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
         self._lockstep_bus = all(getattr(a, "lockstep", True) for a in hardware.axes.values())
+        loop.wait_until = self.run_until
 
     def _bus(self, fn: Any, *args: Any) -> Any:
         # the in-process bus delivers frames on the sending thread: one thread on it at a time
@@ -451,9 +453,7 @@ class Machine:
         out = []
         for ax in self.axes.values():
             if ax.enabled:
-                h = ax.stop()
-                h.detail = why
-                out.append(h)
+                out.append(ax.stop(why))
         return out
 
     def status(self) -> dict[str, Any]:

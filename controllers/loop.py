@@ -138,7 +138,7 @@ class Move:
         """Block until the command ended (lockstep: run the cycles, ``timeout`` in simulated s; wall:
         ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
         TimeoutError when it has not ended within ``timeout``."""
-        if not self.loop.run_until(lambda: self._done.is_set(), timeout):
+        if not self.loop.wait_until(self._done.is_set, timeout):
             raise TimeoutError(f"axis {self.axis}: {self.kind} not done within {timeout:g} s (status {self.status})")
         if self.status == "fault":
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
@@ -254,6 +254,8 @@ class ServoLoop:
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
         self._gc_was_enabled = gc.isenabled()
         self.error: BaseException | None = None  # what killed the loop thread, if anything
+        #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
+        self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
 
     # -- lifetime ---------------------------------------------------------------------------------------
     def start(self) -> None:
@@ -483,8 +485,9 @@ class ServoLoop:
     def _fault(self, fault: Fault, stop: StopReason) -> None:
         """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
+            last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
             for cap in [c for c in rt.captures if c.trigger.kind == "fault"]:
-                cap.complete(rt.ring, self.cycle, f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}")
+                cap.complete(rt.ring, last, f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}")
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:

@@ -120,6 +120,11 @@ class AxisConfig:
     rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: two cycles
     #: limits the file left out: taken from the drive (0x6065/0x6066, 0x607D) when it has them
     limits_from_drive: frozenset[str] = frozenset()
+    #: [axes.NAME.motion], [axes.NAME.homing], [axes.NAME.emulator] (the session's moves, homing and the
+    #: emulated drive's switches: controllers/motion.py, controllers/homing.py)
+    motion: Any = None
+    homing: Any = None
+    emulator: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -208,7 +213,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "motion", "homing",
+                   "emulator"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -278,6 +284,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
+            **_session_tables(src, k, raw),
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -286,6 +293,19 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
     return MachineConfig(src, cycle, axes, bus)
+
+
+def _session_tables(src: str, key: str, raw: dict[str, Any]) -> dict[str, Any]:
+    """motion, homing and emulator tables of an axis, parsed by their own modules."""
+    from drivectl.controllers.homing import parse_emulator_io, parse_homing
+    from drivectl.controllers.motion import parse_motion
+
+    try:
+        return {"motion": parse_motion(src, f"{key}.motion", raw.get("motion")),
+                "homing": parse_homing(src, f"{key}.homing", raw.get("homing")),
+                "emulator": parse_emulator_io(src, f"{key}.emulator", raw.get("emulator"))}
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _count(src: str, key: str, value: Any) -> int:

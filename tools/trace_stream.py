@@ -192,6 +192,7 @@ class TraceWriter:
         self._i = 0  # next row in the current block
         self._count = 0  # rows published to the writer thread (written by the loop only)
         self._written = 0  # rows written to the file (written by the thread only)
+        self._flushed = 0  # rows flushed to the kernel (written by the thread only)
         self.spilled = 0  # blocks allocated because the ring was full (a stalled disk)
         self.error: str | None = None
         self.path: Path | None = None  # the final name
@@ -289,6 +290,18 @@ class TraceWriter:
         self._i = 0
         self._wake.set()
 
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until every row appended so far is written and flushed (not for the cycle: a sync point
+        for tests and for the end of a phase). False on timeout or after a write error."""
+        target = self._count
+        deadline = time.monotonic() + timeout
+        while self._written < target or self._flushed < target:
+            if self.error is not None or self._thread is None or time.monotonic() > deadline:
+                return False
+            self._wake.set()
+            time.sleep(0.001)
+        return self.error is None
+
     @property
     def rows(self) -> int:
         """Rows appended so far."""
@@ -328,6 +341,7 @@ class TraceWriter:
         if self.error is None:
             try:
                 self._file.flush()
+                self._flushed = self._written
             except (OSError, ValueError) as exc:
                 self._fail(exc)
 

@@ -24,11 +24,12 @@ DEFAULT_CONFIG_TOML = """\
 cycle_s = 0.001                 # servo cycle = SYNC period
 
 [bus]
-interface = "virtual"           # python-can interface: virtual | slcan | socketcand | socketcan
-channel = "drivectl"            # virtual: any name (made unique per run); slcan: the tty; socketcan: can0
+interface = "virtual"           # any python-can interface: virtual, slcan, socketcand, socketcan, pcan, kvaser, ...
+channel = "drivectl"            # virtual: any name (unique per run); slcan: the tty; socketcan: can0; kvaser: 0
 bitrate = 1000000
 # host = "127.0.0.1"            # socketcand only (drivectl emulate --socketcand serves loopback)
 # port = 29536
+# [bus.options]                 # passed to can.Bus as they are, e.g. pcan: device_id = 1; kvaser: exclusive = true
 
 [axes.x]
 node_id = 1
@@ -93,15 +94,64 @@ DEFAULT_EDS = str(Path(__file__).resolve().parent.parent / "driver" / "eds" / "d
 
 @dataclass(frozen=True)
 class BusConfig:
-    interface: str = "virtual"
-    channel: str = "drivectl"
+    interface: str = "virtual"  # any of can.interfaces.VALID_INTERFACES
+    channel: str | int = "drivectl"
     bitrate: int = 1_000_000
     host: str = "127.0.0.1"  # socketcand only
     port: int = 29536  # socketcand only
+    options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
+
+    def open_kwargs(self) -> dict[str, Any]:
+        """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
+        kwargs = dict(self.options)
+        if self.interface == "socketcand":
+            kwargs.update(host=self.host, port=self.port)
+        return kwargs
 
 
 class ConfigError(ValueError):
     """The machine configuration is invalid; one line naming the file and the key."""
+
+
+def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
+    """The [bus] table: any interface python-can knows, its options passed through to ``can.Bus``."""
+    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options"}
+    if extra:
+        raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
+    from drivectl.driver.network import INTERFACES, RESERVED_OPTIONS
+
+    interface = bus_raw.get("interface", "virtual")
+    if interface not in INTERFACES:
+        raise ConfigError(f"{src}: bus.interface: {interface!r} is not an interface python-can knows "
+                          f"(one of {', '.join(INTERFACES)})")
+    bitrate = bus_raw.get("bitrate", 1_000_000)
+    if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
+        raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
+    port = bus_raw.get("port", 29536)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+        raise ConfigError(f"{src}: bus.port: expected a TCP port 1..65535, got {port!r}")
+    channel = bus_raw.get("channel", "drivectl")
+    if isinstance(channel, bool) or not (isinstance(channel, str) and channel or isinstance(channel, int)
+                                         and channel >= 0):
+        # an integer for the adapters python-can numbers (Kvaser, IXXAT, Vector, gs_usb: 0, 1, ...)
+        raise ConfigError(f"{src}: bus.channel: expected a non-empty string or a channel number >= 0, "
+                          f"got {channel!r}")
+    options = bus_raw.get("options", {})
+    if not isinstance(options, dict):
+        raise ConfigError(f"{src}: bus.options: expected a table of keyword arguments for python-can's "
+                          f"{interface} interface, got {options!r}")
+    for key, value in options.items():
+        if key in RESERVED_OPTIONS:
+            raise ConfigError(f"{src}: bus.options.{key}: set by [bus] itself, not by its options")
+        if not key.isidentifier():
+            raise ConfigError(f"{src}: bus.options.{key}: not a keyword argument name")
+        if not isinstance(value, str | int | float | bool) or isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{src}: bus.options.{key}: expected a string, number or boolean, got {value!r}")
+    if options and interface == "virtual":
+        raise ConfigError(f"{src}: bus.options: the virtual bus takes no options (it carries the in-process "
+                          f"emulated drives in lockstep); remove them or choose the adapter's interface")
+    return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
+                     dict(options))
 
 
 @dataclass(frozen=True)
@@ -182,22 +232,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
-    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port"}
-    if extra:
-        raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
-    from drivectl.driver.network import INTERFACES
-
-    interface = bus_raw.get("interface", "virtual")
-    if interface not in INTERFACES:
-        raise ConfigError(f"{src}: bus.interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
-    bitrate = bus_raw.get("bitrate", 1_000_000)
-    if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
-        raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
-    port = bus_raw.get("port", 29536)
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
-        raise ConfigError(f"{src}: bus.port: expected a TCP port 1..65535, got {port!r}")
-    bus = BusConfig(interface, _string(src, "bus.channel", bus_raw.get("channel", "drivectl")), bitrate,
-                    _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port)
+    bus = parse_bus(bus_raw, src)
     cycle = _number(src, "cycle_s", data.get("cycle_s", 0.001), positive=True)
     axes_raw = data.get("axes")
     if not isinstance(axes_raw, dict) or not axes_raw:

@@ -595,7 +595,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     axis; 2 bad input, with one line on stderr."""
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
-    from drivectl.driver.axis import AxisError
+    from drivectl.driver.axis import AxisConfigError, AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError, load_config
@@ -606,7 +606,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
         res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                    seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
                    progress=sys.stderr.isatty())
-    except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError) as exc:
+    except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     except AxisError as exc:

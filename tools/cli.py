@@ -40,7 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
                        "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
-    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--plant", help="override the axis's plant: what the emulated drive plays (built-in name or TOML "
+                   "file; also the controller's model unless --model or the axis's model key says otherwise)")
+    t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
+                   "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -179,7 +182,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
     from drivectl.tools.config import ConfigError, load_config
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
@@ -196,12 +199,13 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
         check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
     for name in names:
         ac = cfg.axis(name)
         ctrl_name = args.controller or ac.controller
         settings = ac.controller_settings if ctrl_name == ac.controller else {}
-        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
     if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
         raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
@@ -212,8 +216,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                    "config": cfg.source}
+            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
+                    "bus": machine.bus, "config": cfg.source}
             if effects:
                 meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
             if faults:

@@ -77,6 +77,8 @@ def cmd_config(args: argparse.Namespace) -> int:
         print(f"node_id = {ac.node_id}\nplant = \"{ac.plant}\"\ncontroller = \"{ac.controller}\"\n"
               f"profile = \"{ac.profile}\"\nrated_effort = {ac.rated_effort}\n"
               f"encoder_m_per_count = {ac.encoder_m_per_count:g}\neds = \"{ac.eds}\"")
+        # the plant the controller believes; left out of the file, it is the plant
+        print(f'model = "{ac.model}"' if ac.model is not None else f'# model = "{ac.plant}"  (default: the plant)')
         if ac.controller_settings:
             print(f"[axes.{name}.controller_settings]")
             for k, v in ac.controller_settings.items():

@@ -34,7 +34,8 @@ bitrate = 1000000
 [axes.x]
 node_id = 1
 rated_effort = 100.0         # N per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.1 N
-plant = "rigid-x"               # built-in plant name or a plant TOML file
+plant = "rigid-x"               # built-in plant name or a plant TOML file (what the emulated drive plays)
+# model = "rigid-x"             # the plant the controller believes (name or TOML file); default: the plant
 controller = "asmc"             # smc | vprl | pid-nftsm | asmc | pid | pid-dob
 profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
@@ -170,6 +171,8 @@ class AxisConfig:
     rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: two cycles
     #: limits the file left out: taken from the drive (0x6065/0x6066, 0x607D) when it has them
     limits_from_drive: frozenset[str] = frozenset()
+    #: the plant the controller believes (built-in name or TOML file); None: the same as the plant
+    model: str | None = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -243,7 +246,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -313,6 +316,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
+            model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():

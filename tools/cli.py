@@ -40,7 +40,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
                        "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
-    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--plant", help="override the axis's plant: what the emulated drive plays (built-in name or TOML "
+                   "file; also the controller's model unless --model or the axis's model key says otherwise)")
+    t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
+                   "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -180,7 +183,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
     from drivectl.tools import checks
     from drivectl.tools.config import load_config
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
@@ -200,6 +203,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
         check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
     for name in names:
         ac = cfg.axis(name)
@@ -211,7 +215,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                 print(f"trace: --controller {ctrl_name}: axes.{name}.controller_settings {', '.join(dropped)} "
                       f"dropped (not {ctrl_name} settings){'; kept ' + ', '.join(settings) if settings else ''}",
                       file=sys.stderr)
-        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
     checks.check_bus_log(args.bus_log)
     # the outputs last (this creates --out): a folder we can write, with room for what the run records
@@ -232,8 +236,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                    "config": cfg.source}
+            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
+                    "bus": machine.bus, "config": cfg.source}
             if effects:
                 meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
             if faults:

@@ -66,6 +66,10 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
         t.add("rated_effort", ac.rated_effort)
         t.add("encoder_m_per_count", ac.encoder_m_per_count)
         t.add("eds", ac.eds)
+        if ac.model is not None:
+            t.add("model", ac.model)
+        else:
+            t.add(tomlkit.comment(f'model = "{ac.plant}"  (not set: the controller believes the plant)'))
         t.add("max_lost_cycles", ac.max_lost_cycles)
         if ac.rpdo_timeout_ms is not None:
             t.add("rpdo_timeout_ms", ac.rpdo_timeout_ms)
@@ -116,8 +120,8 @@ def _settings_in_use(cfg: MachineConfig, name: str) -> dict[str, Any]:
 
     ac = cfg.axes[name]
     try:
-        ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=load_plant(ac.plant),
-                               axis=name)
+        model = load_plant(ac.model or ac.plant)
+        ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=model, axis=name)
         return {k: _plain(v) for k, v in ctrl.settings.as_dict().items()}
     except Exception:  # noqa: BLE001 - a courtesy: the keys the file sets are printed whatever happens
         return {}

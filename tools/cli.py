@@ -65,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
                    "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+    from drivectl.tools.learn import add_learning_arguments
+
+    add_learning_arguments(t)
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -120,10 +123,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.identify import IdentificationError
+    from drivectl.tools.learn import LearnedFileError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError)
+                 FaultSpecError, LearnedFileError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -209,6 +213,18 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
     if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
         raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
+    from drivectl.tools.learn import run_repeated, wants_learning
+
+    if wants_learning(args):  # --repeat N / --learn / --learned FILE: tools/learn.py
+
+        def fresh(name: str):
+            ac = cfg.axis(name)
+            ctrl_name = args.controller or ac.controller
+            return make_controller(ctrl_name, cfg.cycle_s, ac.controller_settings if ctrl_name == ac.controller
+                                   else {}, plant=models[name], axis=name)
+
+        return run_repeated(args, request, cfg=cfg, names=names, profiles=profiles, specs=specs, models=models,
+                            controllers=controllers, make_controllers=fresh, effects=effects, faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)

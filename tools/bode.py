@@ -566,7 +566,7 @@ def cmd_bode(args: argparse.Namespace) -> int:
     """0 done; 1 the loop was stopped by a limit or the axis failed; 2 bad input (one line on stderr)."""
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
-    from drivectl.driver.axis import AxisError
+    from drivectl.driver.axis import AxisConfigError, AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.tools.config import load_config
 
@@ -574,7 +574,7 @@ def cmd_bode(args: argparse.Namespace) -> int:
         cfg = load_config(getattr(args, "config", None))
         res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
                           fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant)
-    except (BodeError, ConfigError, PlantError, SettingsError, LimitError) as exc:
+    except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     except AxisError as exc:

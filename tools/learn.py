@@ -289,34 +289,44 @@ RETURN_VMAX, RETURN_AMAX, RETURN_JMAX = 0.05, 0.5, 10.0
 RETURN_SETTLE_S = 0.5
 
 
-def run_repeated(args: argparse.Namespace, request: Any, *, cfg: Any, names: list[str], profiles: dict[str, Any],
-                 specs: dict[str, PlantSpec], models: dict[str, PlantSpec], controllers: dict[str, Controller],
-                 make_controllers: Any, effects: list, faults: Any) -> int:
-    """``trace --repeat N [--learn] [--learned FILE]``; returns the exit code (as plain ``trace``)."""
-    from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
-    from drivectl.profiles.ptp import PointToPoint
-    from drivectl.tools.bode import Hold
-    from drivectl.tools.config import ConfigError
-    from drivectl.tools.machine import open_machine
-    from drivectl.tools.metrics import summarize
+@dataclass
+class RepeatPlan:
+    """What ``trace --repeat/--learn/--learned`` will do, checked before anything opens."""
 
+    repeat: int
+    cycles: int
+    refs: dict[str, np.ndarray]
+    profile_names: dict[str, str]
+    corrections: dict[str, np.ndarray]
+    given: dict[str, str]  # axis -> the --learned file its correction came from
+
+
+def prepare_repeated(args: argparse.Namespace, cfg: Any, names: list[str], profiles: dict[str, Any],
+                     specs: dict[str, PlantSpec]) -> RepeatPlan | None:
+    """None for a plain trace; else the plan, every flag and --learned file checked (one line, exit 2)."""
+    from drivectl.controllers.servo import check_run_length
+    from drivectl.tools.config import ConfigError
+
+    if not wants_learning(args):
+        return None
     reps = args.repeat
     if not (isinstance(reps, int) and 1 <= reps <= 1000):
         raise ConfigError(f"--repeat: expected 1..1000 repetitions, got {reps}")
     if args.paced:
         raise ConfigError("--repeat/--learn: not with --paced (the repetitions run in lockstep)")
-    if faults:
+    if args.fault:
         raise ConfigError("--repeat/--learn: not with --fault")
+    if not (0.0 < args.learn_gain <= 1.0):
+        raise ConfigError(f"--learn-gain: must be in (0, 1], got {args.learn_gain:g}")
+    if args.learn_hz is not None and not (0.0 < args.learn_hz < 0.5 / cfg.cycle_s):
+        raise ConfigError(f"--learn-hz: must be in (0, {0.5 / cfg.cycle_s:g}) Hz, got {args.learn_hz:g}")
     dt = cfg.cycle_s
     duration = args.duration
-    durations = {n: (duration if duration is not None else profiles[n].duration) for n in names}
-    total = max(durations.values())
+    total = max((duration if duration is not None else profiles[n].duration) for n in names)
     cycles = check_run_length(total, dt, "--duration" if duration is not None else "profile: duration")
     t = np.arange(cycles) * dt
     refs = {n: np.asarray(profiles[n].sample(t)[0], dtype=float) for n in names}
     profile_names = {n: args.profile or cfg.axis(n).profile for n in names}
-
-    # the learned corrections given, checked before anything opens
     corrections = {n: np.zeros(cycles) for n in names}
     given: dict[str, str] = {}
     for text in args.learned:
@@ -329,6 +339,29 @@ def run_repeated(args: argparse.Namespace, request: Any, *, cfg: Any, names: lis
                  effort_unit=specs[lc.axis].effort_unit)
         corrections[lc.axis] = lc.correction.copy()
         given[lc.axis] = text
+    return RepeatPlan(reps, cycles, refs, profile_names, corrections, given)
+
+
+def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cfg: Any, names: list[str],
+                 profiles: dict[str, Any], specs: dict[str, PlantSpec], models: dict[str, PlantSpec],
+                 controllers: dict[str, Controller], effects: list, faults: Any) -> int:
+    """``trace --repeat N [--learn] [--learned FILE]``; returns the exit code (as plain ``trace``)."""
+    import copy
+
+    from drivectl.controllers.servo import Channel, StopReason, run_channels
+    from drivectl.profiles.ptp import PointToPoint
+    from drivectl.tools.bode import Hold
+    from drivectl.tools.machine import open_machine
+    from drivectl.tools.metrics import summarize
+
+    reps, cycles, refs = plan.repeat, plan.cycles, plan.refs
+    profile_names, corrections, given = plan.profile_names, plan.corrections, plan.given
+    dt = cfg.cycle_s
+    duration = args.duration
+    pristine = {n: copy.deepcopy(c) for n, c in controllers.items()}  # fresh copies for the loop's response
+
+    def make_controllers(name: str) -> Controller:
+        return copy.deepcopy(pristine[name])
 
     learners: dict[str, Learning] = {}
     if args.learn:

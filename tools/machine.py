@@ -254,10 +254,7 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     """Masters on a bus that reaches drives in another process (slcan, socketcand, socketcan):
     a notifier thread receives, each cycle waits for its TPDOs against a deadline."""
     b = cfg.bus
-    kwargs: dict[str, Any] = {}
-    if b.interface == "socketcand":
-        kwargs = {"host": b.host, "port": b.port}
-    bus = open_bus(b.interface, b.channel, b.bitrate, **kwargs)
+    bus = open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs())
     net = threaded_network(bus)
     machine = Machine({}, specs, f"{b.interface}:{b.channel}")
     machine._closers.append(lambda: close_threaded(net))
@@ -328,8 +325,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
         for drive in session.drives.values():
             drive.boot()
         return session
-    kwargs: dict[str, Any] = {"host": b.host, "port": b.port} if b.interface == "socketcand" else {}
-    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **kwargs))
+    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs()))
     session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])
     session.watch_nmt()
     return session

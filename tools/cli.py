@@ -66,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
                    "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+    from drivectl.tools.learn import add_learning_arguments
+
+    add_learning_arguments(t)
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -121,10 +124,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.identify import IdentificationError
+    from drivectl.tools.learn import LearnedFileError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError)
+                 FaultSpecError, LearnedFileError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -218,6 +222,9 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                       file=sys.stderr)
         controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
+    from drivectl.tools.learn import prepare_repeated, run_repeated
+
+    plan = prepare_repeated(args, cfg, names, profiles, specs)  # --repeat / --learn / --learned, checked now
     checks.check_bus_log(args.bus_log)
     # the outputs last (this creates --out): a folder we can write, with room for what the run records
     if args.duration is not None:
@@ -229,7 +236,10 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         source = getattr(longest, "source", None)
         cycles = check_run_length(longest.duration, cfg.cycle_s,
                                   f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
-    checks.check_outputs(args.out, cycles, 5, len(names), plot=not args.no_plot)
+    checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
+    if plan is not None:  # the repetitions (tools/learn.py)
+        return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
+                            models=models, controllers=controllers, effects=effects, faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)

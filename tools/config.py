@@ -173,6 +173,11 @@ class AxisConfig:
     limits_from_drive: frozenset[str] = frozenset()
     #: the plant the controller believes (built-in name or TOML file); None: the same as the plant
     model: str | None = None
+    #: [axes.NAME.motion], [axes.NAME.homing], [axes.NAME.emulator] (the session's moves, homing and the
+    #: emulated drive's switches: controllers/motion.py, controllers/homing.py)
+    motion: Any = None
+    homing: Any = None
+    emulator: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -201,6 +206,11 @@ def load_config(path: str | Path | None = None) -> MachineConfig:
     if not path:
         return parse_config(tomllib.loads(DEFAULT_CONFIG_TOML), "<embedded default>")
     p = Path(path)
+    try:
+        str(p).encode("utf-8")
+    except UnicodeEncodeError:
+        raise ConfigError(f"--config {os.fsencode(p)!r}: the path is not valid UTF-8 (traces record it as "
+                          "text); rename the file") from None
     try:
         data = tomllib.loads(p.read_text())
     except FileNotFoundError:
@@ -241,12 +251,18 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     if not isinstance(axes_raw, dict) or not axes_raw:
         raise ConfigError(f"{src}: axes: expected at least one [axes.NAME] table")
     axes: dict[str, AxisConfig] = {}
+    from drivectl.tools.trace_stream import safe_name
+
     for name, raw in axes_raw.items():
         k = f"axes.{name}"
+        if not safe_name(name):
+            raise ConfigError(f"{src}: axes.{name!r}: an axis name names its trace files: letters, digits, _ + - "
+                              "only, at most 64 characters")
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
+                   "homing", "emulator"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -312,11 +328,12 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             node_id=_node_id(src, f"{k}.node_id", raw.get("node_id", len(axes) + 1)),
             rated_effort=rated,
             eds=_string(src, f"{k}.eds", raw.get("eds", DEFAULT_EDS)),
-            max_lost_cycles=_count(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
+            max_lost_cycles=_lost_cycles(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
             rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
             model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
+            **_session_tables(src, k, raw),
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -327,9 +344,34 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     return MachineConfig(src, cycle, axes, bus)
 
 
+def _session_tables(src: str, key: str, raw: dict[str, Any]) -> dict[str, Any]:
+    """motion, homing and emulator tables of an axis, parsed by their own modules."""
+    from drivectl.controllers.homing import parse_emulator_io, parse_homing
+    from drivectl.controllers.motion import parse_motion
+
+    try:
+        return {"motion": parse_motion(src, f"{key}.motion", raw.get("motion")),
+                "homing": parse_homing(src, f"{key}.homing", raw.get("homing")),
+                "emulator": parse_emulator_io(src, f"{key}.emulator", raw.get("emulator"))}
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
 def _count(src: str, key: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
         raise ConfigError(f"{src}: {key}: expected an integer 0..65535, got {value!r}")
+    return value
+
+
+#: the most cycles in a row the master bridges without TPDOs: it extrapolates the position from the last
+#: one received, which holds for a few cycles only (at 2 m/s and 1 g, 10 ms of a wrong guess is 50 um)
+MAX_LOST_CYCLES = 10
+
+
+def _lost_cycles(src: str, key: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_LOST_CYCLES:
+        raise ConfigError(f"{src}: {key}: expected an integer 0..{MAX_LOST_CYCLES} (cycles bridged by extrapolating "
+                          f"the position; more is driving blind), got {value!r}")
     return value
 
 

@@ -596,6 +596,9 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
                    "(default: the axis's model key, else its plant); the verification runs on the axis")
     p.add_argument("--out", metavar="TOML", help="where to write the gains (default traces/tune-AXIS.toml)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--write-config", nargs="?", const="", metavar="FILE",
+                   help="also merge the gains (and the controller) into axes.AXIS of FILE (default: the --config "
+                   "in use), comments kept, the old file backed up as FILE.STAMP.bak")
     return p
 
 
@@ -614,6 +617,10 @@ def cmd_tune(args: argparse.Namespace) -> int:
         from drivectl.tools.machine import with_model
 
         cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
+        if getattr(args, "write_config", None) is not None:  # before the search and the verification run
+            from drivectl.tools.config_io import target_file
+
+            args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
         res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                    seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
                    progress=sys.stderr.isatty())
@@ -625,11 +632,26 @@ def cmd_tune(args: argparse.Namespace) -> int:
         return 1
     out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
     atomic_write_text(out, settings_toml(res))
+    merged = ""
+    if getattr(args, "write_config", None) is not None:  # tools/config_io.py: comments kept, old file backed up
+        from drivectl.tools.config_io import merge_into, target_file
+
+        try:
+            target = target_file(args.write_config, getattr(args, "config", None))
+            backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
+                                note=f"tuned by drivectl tune ({res.candidates} candidates)")
+        except ConfigError as exc:
+            print(f"drivectl: {exc}", file=sys.stderr)
+            return 2
+        merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
+            f" (old file kept as {backup})" if backup else "")
     if args.json:
         print(json.dumps(res.to_json()))
     else:
         print(report(res), end="")
         print(f"wrote {out}")
+        if merged:
+            print(merged)
     if res.measured is not None and not res.measured.ok:
         print(f"drivectl: verification stopped: {res.measured.detail}", file=sys.stderr)
         return 1

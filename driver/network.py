@@ -28,7 +28,7 @@ SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
 #: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
 INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
 #: keys a [bus.options] table may not set: they have keys of their own in [bus]
-RESERVED_OPTIONS = frozenset({"interface", "channel", "bitrate", "host", "port", "can_filters", "bustype", "context"})
+RESERVED_OPTIONS = frozenset({"interface", "bustype", "channel", "bitrate", "host", "port", "can_filters"})
 
 _channel_counter = itertools.count()
 

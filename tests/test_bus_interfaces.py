@@ -7,7 +7,9 @@ The CLI cases run the real entry point in-process; stderr must be exactly one ``
 
 from __future__ import annotations
 
+import re
 import socket
+import textwrap
 import threading
 from pathlib import Path
 from typing import Any
@@ -180,3 +182,29 @@ def test_a_server_that_is_not_socketcand_is_one_line(monkeypatch, says, expected
         done.set()
         thread.join(5.0)
         listener.close()
+
+
+def test_the_adapter_examples_of_real_drive_md_load_and_fail_in_one_line(tmp_path, capsys):
+    """docs/real-drive.md's PCAN and Kvaser tables are valid configuration, and on a machine without the
+    vendor's library give exactly the one line the page shows."""
+    page = (Path(__file__).resolve().parent.parent / "docs" / "real-drive.md").read_text()
+    blocks = [textwrap.dedent(b) for b in re.findall(r"```toml\n(.*?)```", page, re.S)]
+    shown = {b.split('interface = "')[1].split('"')[0]: b for b in blocks if "[bus]" in b}
+    assert set(shown) >= {"pcan", "kvaser"}
+    for interface, table in shown.items():
+        config = write_config(tmp_path, table)
+        assert load_config(config).bus.interface == interface
+        if vendor_library_present(interface, load_config(config).bus.channel):
+            continue
+        rc, lines = run_cli(capsys, "--config", config, "scan")
+        assert rc == 2 and len(lines) == 1, lines
+        prefix = f"drivectl: bus {interface}:"
+        assert lines[0].startswith(prefix) and lines[0].split(": cannot open: ")[0] in page.replace("`", " ")
+
+
+def test_config_show_keeps_the_bus_options(tmp_path, capsys):
+    config = write_config(tmp_path, KVASER)
+    assert main(["--config", config, "config", "show"]) == 0
+    shown = tmp_path / "shown.toml"
+    shown.write_text(capsys.readouterr().out)
+    assert load_config(shown).bus == load_config(config).bus  # channel 0 stays a number, options whole

@@ -268,8 +268,10 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None =
 def cmd_identify(args: argparse.Namespace) -> int:
     from drivectl.plant_emulator.models import PlantSpec
     from drivectl.tools.trace import atomic_write_text
+    from drivectl.tools.trace_stream import check_output_folder
 
     cfg = load_config(args.config)
+    cfg.axis(args.axis)
     if getattr(args, "write_config", None) is not None:  # before anything moves
         from drivectl.tools.config_io import target_file
 
@@ -279,6 +281,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     plants = plant_specs(cfg, [args.axis], getattr(args, "plant", None))
     believed = model_specs(cfg, [args.axis], getattr(args, "model", None), getattr(args, "plant", None),
                            plants=plants)[args.axis]
+    check_output_folder(args.out, "--out", 1_000_000)  # the plant file goes there after the runs
     if believed.model == "two-mass":  # closed-loop FRF fit (tools/identify_two_mass.py)
         from drivectl.tools.identify_two_mass import cmd_identify_two_mass
 

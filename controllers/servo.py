@@ -219,6 +219,9 @@ def run_channels(
 
     for ch in channels:
         ch.controller.reset()
+        prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+        if prepare is not None:
+            prepare(ch.profile, t)
     signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
     with signals as request:
         bar = None

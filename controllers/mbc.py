@@ -212,6 +212,7 @@ class Mbc(Controller):
         self._tmp = np.zeros(na)
         self._started = False
         self._u_prev = 0.0  # net command sent last cycle (acting now)
+        self._fk = 0.0  # the friction compensation in it
         self._k = 0  # cycle index into the prepared table
 
     def prepare(self, profile: Any, times: np.ndarray) -> None:
@@ -300,5 +301,11 @@ class Mbc(Controller):
         e = xref - s[:n]
         u_net = uff + float(np.dot(self.d.K, e)) + self.d.gd[0] * s[n] + self.d.gd[1] * s[n + 1]
         self._u_prev = u_net
+        self._fk = fk
         self._k += 1
         return u_net + fk
+
+    def note_applied(self, effort: Any) -> None:
+        """The effort actually sent (a learned feed-forward added to ours): the filter must know the
+        command in flight, or it takes the addition for a disturbance and cancels it."""
+        self._u_prev = float(effort) - self._fk

@@ -1,10 +1,11 @@
 """The `drivectl` command line.
 
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
-bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
-ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
-position; axis stopped, trace kept with the fault in its metadata); 130 / 143 interrupted by SIGINT /
-SIGTERM (the axis quick-stopped and disabled, the trace kept).
+bus/drive refused a command, or the trace could not be written whole (disk full after the checks);
+2 bad input (one line on stderr naming the file and the key); 3 a fault ended the run (drive fault,
+lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position; axis stopped, trace kept
+with the fault in its metadata); 130 / 143 interrupted by SIGINT / SIGTERM (the axis quick-stopped and
+disabled, the trace kept).
 """
 
 from __future__ import annotations
@@ -272,13 +273,17 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         machine.close()
-    from drivectl.tools.trace_stream import clean_stale, write_trace
+    from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
 
     out = Path(args.out)
     clean_stale(out)
     written = []
+    unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
     for tr in result.traces.values():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
-        written.append(write_trace(out, tr))
+        try:
+            written.append(write_trace(out, tr))
+        except (TraceWriteError, OSError) as exc:
+            unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")
     if not args.no_plot and result.cycles > 1:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
@@ -298,6 +303,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
+    for line in unwritten:
+        print(f"drivectl: {line}", file=sys.stderr)
     if result.stop is StopReason.INTERRUPTED:
         name = request.name or "SIGINT"
         how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
@@ -314,7 +321,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if not result.ok:
         print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
         return EXIT_STOPPED
-    return EXIT_OK
+    return EXIT_STOPPED if unwritten else EXIT_OK
 
 
 def cmd_plot(args: argparse.Namespace) -> int:

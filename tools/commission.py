@@ -258,12 +258,15 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
 def cmd_identify(args: argparse.Namespace) -> int:
     from drivectl.plant_emulator.models import PlantSpec
     from drivectl.tools.trace import atomic_write_text
+    from drivectl.tools.trace_stream import check_output_folder
 
     cfg = load_config(args.config)
+    cfg.axis(args.axis)
     if getattr(args, "write_config", None) is not None:  # before anything moves
         from drivectl.tools.config_io import target_file
 
         args.write_config = str(target_file(args.write_config, args.config))
+    check_output_folder(args.out, "--out", 1_000_000)  # the plant file goes there after the runs
     t0 = time.perf_counter()
     result = identify_axis(cfg, args.axis, sim=args.sim)
     keys = IDENTIFY_KEYS

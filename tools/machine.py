@@ -19,8 +19,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import can
-
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
@@ -259,7 +257,7 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     machine = Machine({}, specs, f"{b.interface}:{b.channel}")
     machine._closers.append(lambda: close_threaded(net))
     if bus_log:
-        net.notifier.add_listener(can.Logger(bus_log))
+        attach_bus_log(net, bus_log)  # sent and received frames, on one clock
     try:
         _connect_masters(machine, net, cfg, names, specs)
     except BaseException:

@@ -181,7 +181,8 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         start = axis_profile(cfg, name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
-                              initial_position=start, faults=injectors[name] if faults else None)
+                              initial_position=start, faults=injectors[name] if faults else None,
+                              io=ac.emulator)
         drives.append(drive)
     if log is not None:
         log_sent_frames(net, log)  # stamped when sent, on the clock received frames are restamped with

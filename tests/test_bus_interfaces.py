@@ -17,7 +17,7 @@ from typing import Any
 import can
 import pytest
 
-from drivectl.driver import network
+from drivectl.driver import network, socketcand_client
 from drivectl.driver.network import INTERFACES, BusOpenError, open_bus, unique_virtual_channel
 from drivectl.tools.cli import main
 from drivectl.tools.config import ConfigError, load_config
@@ -160,7 +160,7 @@ def test_missing_slcan_tty_is_one_line(tmp_path, capsys):
 def test_a_server_that_is_not_socketcand_is_one_line(monkeypatch, says, expected):
     """Something listens but does not greet (or greets wrongly): one line within the handshake bound, where
     python-can's client would block in recv() for ever."""
-    monkeypatch.setattr(network, "SOCKETCAND_HANDSHAKE_S", 0.2)
+    monkeypatch.setattr(socketcand_client, "SOCKETCAND_HANDSHAKE_S", 0.2)
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
     done = threading.Event()
@@ -208,3 +208,28 @@ def test_config_show_keeps_the_bus_options(tmp_path, capsys):
     shown = tmp_path / "shown.toml"
     shown.write_text(capsys.readouterr().out)
     assert load_config(shown).bus == load_config(config).bus  # channel 0 stays a number, options whole
+
+
+def test_socketcand_server_going_away_is_one_warning_and_a_bus_error(caplog):
+    """python-can's client read the server's EOF as "no frame" for ever (its notifier spinning) or, on a
+    reset, printed a traceback from the notifier thread, and its send raised BrokenPipeError. Through
+    open_bus: one warning, then a silent bus (the master's TPDO deadline sees it), sends a can.CanError."""
+    from drivectl.plant_emulator.socketcand import SocketcandServerBus
+
+    server = SocketcandServerBus(port=0)
+    client = open_bus("socketcand", "can0", host="127.0.0.1", port=server.port)
+    try:
+        assert server.wait_for_client(5.0)
+        server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+        assert client.recv(5.0) is not None
+        with caplog.at_level("WARNING"):
+            server.shutdown()
+            assert client.recv(0.2) is None  # the EOF (there at once: shutdown closed the socket), not a frame
+            assert client.recv(0.01) is None  # and quiet afterwards
+        lost = [r.getMessage() for r in caplog.records if "connection lost" in r.getMessage()]
+        assert lost == [f"socketcand on can0@127.0.0.1:{server.port}: connection lost (the server closed it)"]
+        with pytest.raises(can.CanOperationError, match="connection lost"):
+            client.send(can.Message(arbitration_id=0x201, data=b"\x00", is_extended_id=False))
+    finally:
+        client.shutdown()
+        server.shutdown()

@@ -284,7 +284,7 @@ def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
         machine.loop.submit(hold)
         machine.run_until(held.is_set, 5.0)
         machine.run_until(lambda: False, 0.05)  # let it settle against the stop
-        axis.set_position(cfg.position + (axis.position - axis.position))
+        axis.set_position(cfg.position)  # where it stands against the stop
         machine.run_until(lambda: True, None)
     finally:
         _restore(machine, axis, old)

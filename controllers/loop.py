@@ -295,8 +295,10 @@ class ServoLoop:
                     cap.cancel("the machine closed before it completed")
                 rt.captures.clear()
             self.flush()
-            if self.gc_control and self._gc_was_enabled:
-                gc.enable()
+            if self.gc_control and self.clock == "wall":
+                gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+                if self._gc_was_enabled:
+                    gc.enable()
         for rt in self._rts:
             states[rt.name] = rt.ch.axis.power.value
         return states

@@ -13,8 +13,6 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import socket
-import threading
 import time
 from typing import Any
 
@@ -22,13 +20,14 @@ import can
 import canopen
 
 from drivectl.driver.axis import AxisConfigError
+from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
 
 #: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
 SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
 #: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
 INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
 #: keys a [bus.options] table may not set: they have keys of their own in [bus]
-RESERVED_OPTIONS = frozenset({"interface", "channel", "bitrate", "host", "port", "can_filters", "bustype", "context"})
+RESERVED_OPTIONS = frozenset({"interface", "bustype", "channel", "bitrate", "host", "port", "can_filters"})
 
 _channel_counter = itertools.count()
 
@@ -63,7 +62,7 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
         kwargs.setdefault("tcp_tune", True)  # TCP_NODELAY + QUICKACK: else Nagle and delayed ACKs cost ~40 ms a cycle
         host, port = kwargs.get("host", "127.0.0.1"), kwargs.get("port", 29536)
         where = f"bus socketcand {host}:{port} ({channel})"
-        _probe_socketcand(where, host, port)
+        probe_socketcand(where, host, port, BusOpenError)
     with _CanLogCapture() as captured:
         try:
             bus = _construct(interface, channel, kwargs)
@@ -75,55 +74,9 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
 
 
 def _construct(interface: str, channel: str | int, kwargs: dict[str, Any]) -> can.BusABC:
-    if interface != "socketcand":
-        return can.Bus(interface=interface, channel=channel, **kwargs)
-    # python-can's socketcand client reads its handshake with blocking recv()s on a socket without a
-    # timeout: a server that accepts and then says nothing would hang us for ever. Its socket is created
-    # inside the constructor, so the default timeout is set around it, then the socket is made blocking
-    # again (the receive path selects with its own timeout).
-    with _DEFAULT_TIMEOUT_LOCK:
-        before = socket.getdefaulttimeout()
-        socket.setdefaulttimeout(SOCKETCAND_HANDSHAKE_S)
-        try:
-            bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        finally:
-            socket.setdefaulttimeout(before)
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
-    if isinstance(sock, socket.socket):
-        sock.settimeout(None)
-    return bus
-
-
-#: seconds a socketcand server has to accept and greet, and to finish the handshake
-SOCKETCAND_HANDSHAKE_S = 3.0
-_DEFAULT_TIMEOUT_LOCK = threading.Lock()
-
-
-def _probe_socketcand(where: str, host: str, port: int) -> None:
-    """Check that a socketcand server listens and greets before python-can's client tries: when nothing
-    listens, that client retries connect() in a busy loop for 10 s logging one warning per attempt
-    (~880 000 lines). One connection, one ``< hi >`` read with a deadline, then closed."""
-    try:
-        with socket.create_connection((host, port), timeout=SOCKETCAND_HANDSHAKE_S) as probe:
-            greeting = b""
-            deadline = time.monotonic() + SOCKETCAND_HANDSHAKE_S
-            while not greeting.endswith(b">") and len(greeting) < 64:
-                probe.settimeout(max(0.001, deadline - time.monotonic()))
-                chunk = probe.recv(64)
-                if not chunk:
-                    break
-                greeting += chunk
-    except ConnectionRefusedError:
-        raise BusOpenError(f"{where}: cannot open: nothing listens there (connection refused); start the "
-                           f"emulator (drivectl emulate --socketcand {port}) or socketcand first") from None
-    except TimeoutError:
-        raise BusOpenError(f"{where}: cannot open: no socketcand greeting within {SOCKETCAND_HANDSHAKE_S:g} s") \
-            from None
-    except OSError as exc:
-        raise BusOpenError(f"{where}: cannot open: {exc.strerror or exc}") from None
-    if greeting.strip() != b"< hi >":
-        text = greeting.decode("ascii", "replace").strip() or "the connection closed"
-        raise BusOpenError(f"{where}: cannot open: not a socketcand server (it said {text!r}, expected '< hi >')")
+    if interface == "socketcand":
+        return SocketcandClientBus.connect(channel, **kwargs)
+    return can.Bus(interface=interface, channel=channel, **kwargs)
 
 
 class _CanLogCapture(logging.Handler):
@@ -211,13 +164,13 @@ class LockstepNetwork(canopen.Network):
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
-        self.log: can.Listener | None = None
+        self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
         if self.log is not None:
-            self.log.on_message_received(_logged(can_id, data, remote, rx=False))
+            self.log.sent(can_id, data, remote)
         self.lockstep.settle()
         if self.recv_error is not None:
             exc, self.recv_error = self.recv_error, None
@@ -264,20 +217,61 @@ def threaded_network(bus: can.BusABC) -> canopen.Network:
     return net
 
 
+class BusLog(can.Listener):
+    """A python-can Logger (format by the file's suffix: .asc, .blf, .log, .csv, .trc) that stamps every
+    frame, sent or received, with one clock: the host's ``time.time()`` when this process sends or receives
+    it. Received frames arrive stamped by whoever received them first (the kernel, an adapter's own
+    counter, PCAN's boot-relative clock, the socketcand server's text), so they are restamped here."""
+
+    def __init__(self, path: str) -> None:
+        try:
+            self.logger = can.Logger(path)
+        except ValueError as exc:
+            raise ValueError(f"--bus-log {path}: {exc}") from None
+        self.path = path
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.logger.on_message_received(can.Message(
+            timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, channel=msg.channel,
+            dlc=msg.dlc, data=msg.data, is_fd=msg.is_fd, is_rx=msg.is_rx, bitrate_switch=msg.bitrate_switch,
+            error_state_indicator=msg.error_state_indicator, check=False))
+
+    def sent(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """A frame this process sent (python-can buses do not echo them)."""
+        self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
+
+    def stop(self) -> None:
+        self.logger.stop()
+
+
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:
     return can.Message(timestamp=time.time(), arbitration_id=can_id, data=bytes(data), is_remote_frame=remote,
                        is_extended_id=can_id > 0x7FF, is_rx=rx)
 
 
-def attach_bus_log(network: LockstepNetwork, path: str) -> can.Listener:
-    """Record every frame the network sends and receives (on a bus: every frame) through python-can's
-    Logger, the format chosen by the file's suffix (.asc, .blf, .log, .csv, .trc)."""
-    try:
-        logger = can.Logger(path)
-    except ValueError as exc:
-        raise ValueError(f"--bus-log {path}: {exc}") from None
-    network.log = logger
-    return logger
+def log_sent_frames(network: canopen.Network, log: BusLog) -> None:
+    """Wrap ``network.send_message`` so that every frame it sends is logged after it went out."""
+    send = network.send_message
+
+    def send_and_log(can_id: int, data: bytes, remote: bool = False) -> None:
+        send(can_id, data, remote)
+        log.sent(can_id, data, remote)
+
+    network.send_message = send_and_log  # type: ignore[method-assign]
+
+
+def attach_bus_log(network: canopen.Network, path: str) -> BusLog:
+    """Record every frame the network sends and receives (on a bus: every frame) on one clock
+    (:class:`BusLog`). A lockstep network logs in its own send/pump; a threaded one gets the log as a
+    notifier listener (stopped by :func:`close_threaded`) and its sends wrapped."""
+    log = BusLog(path)
+    if isinstance(network, LockstepNetwork):
+        network.log = log
+    else:
+        network.notifier.add_listener(log)
+        log_sent_frames(network, log)
+    return log
 
 
 def close_threaded(net: canopen.Network) -> None:

@@ -256,3 +256,74 @@ def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
         assert {"missed_deadlines", "worst_late_ms", "stalls", "gc_collections"} <= set(st)
         assert "gc" in st["granted"]
     assert x.power is PowerState.SWITCH_ON_DISABLED
+
+
+def homing_config(method: str, **homing):
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    x = data["axes"]["x"]
+    x["controller"], x["controller_settings"] = "pid-dob", {}
+    x["homing"] = {"method": method, **homing}
+    # the emulated drive: home switch active at and below -12 mm, mechanical stop at -30 mm
+    x["emulator"] = {"home_switch_m": -0.012, "limit_switches_m": [-0.095, 0.095], "hard_stops_m": [-0.03, 0.12]}
+    return parse_config(data, "<test>")
+
+
+def test_home_here_sets_the_coordinates(tmp_path):
+    with drivectl.connect(homing_config("here", position_m=0.05), axes=["x"], fault_dir=tmp_path,
+                          start={"x": 0.003}) as m:
+        x = m.axes["x"]
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done"
+        assert x.position == pytest.approx(0.05, abs=1e-6)
+        x.move_by(0.01).wait(5)
+        m.advance(0.2)
+        assert x.position == pytest.approx(0.06, abs=1e-6)
+        assert m.hardware.drives["x"].drive.position == pytest.approx(0.013, abs=2e-6)  # the drive's own
+
+
+def test_home_on_the_home_switch_from_0x60FD(tmp_path):
+    with drivectl.connect(homing_config("switch", position_m=0.0, speed_m_s=0.02), axes=["x"],
+                          fault_dir=tmp_path, start={"x": 0.01}) as m:
+        x = m.axes["x"]
+        assert m.hardware.drives["x"].drive.digital_inputs() == 0
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done", h.detail
+        m.advance(0.2)
+        drive = m.hardware.drives["x"].drive
+        # home (0.0) is the switch's edge at -12 mm of the drive, to a creep cycle (1 mm/s x 1 ms)
+        assert drive.position == pytest.approx(-0.012, abs=3e-6)
+        assert x.position == pytest.approx(0.0, abs=3e-6)
+        x.move_by(0.001).wait(5)
+        assert drive.digital_inputs() & 4 == 0  # off the cam
+        x.move_by(-0.002).wait(5)
+        assert drive.digital_inputs() & 4 == 4  # on it
+        # the soft limits hold again after homing
+        with pytest.raises(LimitError):
+            x.move_to(0.2)
+
+
+def test_home_against_the_hard_stop_by_following_error(tmp_path):
+    with drivectl.connect(homing_config("hard-stop", position_m=-0.02, speed_m_s=0.005, hard_stop_effort=300.0),
+                          axes=["x"], fault_dir=tmp_path, start={"x": -0.025}) as m:
+        x = m.axes["x"]
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done", h.detail
+        m.advance(0.2)
+        drive = m.hardware.drives["x"].drive
+        # the stop (-30 mm of the drive) is -20 mm of the axis; it backed off 1 mm
+        assert x.position == pytest.approx(-0.019, abs=2e-6)
+        assert drive.position == pytest.approx(-0.029, abs=1e-5)
+        assert x.state == "servo" and x.limits.following_error == 0.001  # limits restored
+
+
+def test_homing_switch_not_found_is_one_error(tmp_path):
+    with drivectl.connect(homing_config("switch", direction="positive", max_travel_m=0.01), axes=["x"],
+                          fault_dir=tmp_path) as m:
+        x = m.axes["x"]
+        x.enable()
+        with pytest.raises(Exception, match="home switch not found within 10 mm"):
+            x.home().wait(1)
+        assert x.state == "servo"

@@ -267,8 +267,10 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
+        # the traces stream to --out as the run goes (a killed run leaves its .partial files)
         result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
-                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request)
+                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request,
+                              stream=Path(args.out))
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
@@ -279,8 +281,11 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     clean_stale(out)
     written = []
     unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
-    for tr in result.traces.values():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
-        try:
+    for name, tr in result.traces.items():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
+        if name in result.paths:  # streamed during the run
+            written.append(result.paths[name])
+            continue
+        try:  # the stream failed (disk full, folder gone): once more, whole
             written.append(write_trace(out, tr))
         except (TraceWriteError, OSError) as exc:
             unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")

@@ -136,9 +136,11 @@ def test_relative_run_of_a_profile(machine):
     prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.4)
     with pytest.raises(LimitError, match="starts at"):
         x.run(prof)  # absolute: the axis is not at the start
-    h = x.run(prof, relative=True).wait(5)
+    h = x.run(prof, relative=True, record=machine.loop.fault_dir).wait(5)
     assert h.status == "done"
     tr = h.trace
+    streamed = Trace.read(h.path)
+    assert streamed.meta["stop"] == "done" and np.allclose(streamed.pos, tr.pos, rtol=0, atol=1e-9)
     assert isinstance(tr, Trace) and len(tr) == round(0.4 / 0.001) + 1
     assert tr.ref[0] == pytest.approx(0.01, abs=1e-9) and tr.ref[-1] == pytest.approx(0.015, abs=1e-9)
     assert np.max(np.abs(tr.error)) < 50e-6

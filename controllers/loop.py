@@ -272,6 +272,7 @@ class ServoLoop:
         self._thread: threading.Thread | None = None
         self._watchdog: threading.Thread | None = None
         self._closing = False
+        self._closed = threading.Event()
         self._last_cycle_t: float | None = None
         self._stalled = False
         self._writer: threading.Thread | None = None
@@ -310,6 +311,7 @@ class ServoLoop:
                                timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
         finally:
             self._closing = True
+            self._closed.set()
             if self._thread is not None:
                 self._thread.join(timeout)
             if self._watchdog is not None:
@@ -639,8 +641,7 @@ class ServoLoop:
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
-        while not self._closing:
-            time.sleep(self.stall_s / 2)
+        while not self._closed.wait(self.stall_s / 2):
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue

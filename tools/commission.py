@@ -51,6 +51,9 @@ def add_commission_parsers(sub: Any) -> None:
     i.add_argument("--out", default="traces", metavar="DIR", help="where the identified plant TOML goes")
     i.add_argument("--sim", action="store_true", help="SimAxis instead of the emulated drive on the bus")
     i.add_argument("--json", action="store_true")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(i)
     i.add_argument("--write-config", nargs="?", const="", metavar="FILE",
                    help="also point axes.AXIS.plant at the identified plant in FILE (default: the --config in "
                    "use), comments kept, the old file backed up as FILE.STAMP.bak")
@@ -223,9 +226,11 @@ def cmd_power(args: argparse.Namespace) -> int:
 IDENTIFY_KEYS = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_pos", "fc_neg": "fc_neg"}
 
 
-def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
+def identify_axis(cfg: Any, name: str, *, sim: bool = False, approach: bool | None = None) -> dict[str, Any]:
     """Run the identification on axis ``name`` of ``cfg`` (emulated drive on the bus, or SimAxis);
-    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI."""
+    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI. An axis that is not
+    at the identification profile's start is moved there first (tools/approach.py; ``approach``: the
+    ``--approach`` / ``--no-approach`` choice)."""
     from drivectl.controllers.pid import PidDob
     from drivectl.plant_emulator.models import load_plant
     from drivectl.tools.identify import identify_rigid
@@ -240,7 +245,22 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
     def axis_factory(start: float):
         m = open_machine(cfg, [name], sim=sim, start={name: start})
         machines.append(m)
+        _approach(m.axes[name], start)
         return m.axes[name]
+
+    def _approach(axis: Any, start: float) -> None:
+        from drivectl.controllers.servo import Channel, LimitError, run_channels
+        from drivectl.profiles.dwell import Dwell
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        ch = Channel(axis, controller_factory(cfg.cycle_s), Dwell(start, 1.0), ac.limits, {})
+        plan, moves = plan_approach([ch], where_axes_stand([ch]), {name: ac.motion})
+        if plan is None:
+            return
+        consent(approach, moves)
+        res = run_channels(plan)  # ends disabled: the identification enables it again
+        if not res.ok:
+            raise LimitError(f"axis {name}: the approach to {start * 1e3:.3f} mm stopped: {res.detail}")
 
     def controller_factory(dt: float):
         # the loop's nominal mass is a rough guess on purpose: the result does not depend on it
@@ -268,7 +288,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         args.write_config = str(target_file(args.write_config, args.config))
     check_output_folder(args.out, "--out", 1_000_000)  # the plant file goes there after the runs
     t0 = time.perf_counter()
-    result = identify_axis(cfg, args.axis, sim=args.sim)
+    result = identify_axis(cfg, args.axis, sim=args.sim, approach=args.approach)
     keys = IDENTIFY_KEYS
     model = result["spec"]
     ident = result["identified"]

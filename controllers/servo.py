@@ -256,6 +256,9 @@ def run_channels(
     try:
         for ch in channels:
             ch.controller.reset()
+            prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+            if prepare is not None:
+                prepare(ch.profile, plan.t)
             ch.clipped = 0
         pacer = Pacer(plan.dt) if pace else None
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()

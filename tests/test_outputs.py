@@ -128,3 +128,16 @@ def test_a_trace_lost_after_the_run_is_one_line_and_exit_1(tmp_path, capsys, mon
     assert "completed" in cap.out  # the summary of the run that happened
     lines = [ln for ln in cap.err.splitlines() if ln.startswith("drivectl: ")]
     assert len(lines) == 1 and "No space left on device" in lines[0]
+
+
+def test_bode_out_naming_a_file_is_refused_before_the_measurement(tmp_path, capsys):
+    f = tmp_path / "x.csv"
+    f.write_text("not a folder")
+    _refused(capsys, ["bode", "--axis", "x", "--sim", "--out", str(f)], "--out", "not a folder")
+    assert f.read_text() == "not a folder"
+
+
+def test_identify_out_naming_a_file_is_refused_before_the_runs(tmp_path, capsys):
+    f = tmp_path / "x.csv"
+    f.write_text("not a folder")
+    _refused(capsys, ["identify", "--axis", "x", "--sim", "--out", str(f)], "--out", "not a folder")

@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.shell import add_shell_parser
+
+    add_shell_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -159,6 +162,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "shell":
+            from drivectl.tools.shell import cmd_shell
+
+            return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:

@@ -364,20 +364,35 @@ def test_socketcand_idle_connection_does_not_hold_the_server():
         server.shutdown()
 
 
-def test_socketcand_idle_raw_client_is_closed_and_clients_are_capped():
-    server = SocketcandServerBus(port=0, idle_timeout=0.3, max_clients=2)
-    first = raw_mode_socket(server)
+def test_socketcand_clients_are_capped_and_a_client_that_stops_reading_is_closed():
+    """At most max_clients connections; a raw client on a quiet bus stays (a resident master between
+    runs); one that takes none of the frames waiting for it for idle_timeout is closed (dead or hung)."""
+    server = SocketcandServerBus(port=0, idle_timeout=0.3, max_clients=2, raw_hold_off=0)
+    quiet = raw_mode_socket(server)
+    stalled = raw_mode_socket(server, SO_RCVBUF=4096)
     try:
-        second = raw_mode_socket(server)
         with socket.create_connection(("127.0.0.1", server.port), timeout=GUARD) as third:
             assert read_until_closed(third) == b"< error too many clients >"
-        assert read_until_closed(first) == b""  # neither sent nor took a byte for 0.3 s
-        assert read_until_closed(second) == b""
+        time.sleep(0.5)  # longer than idle_timeout on a quiet bus: nobody is closed
+        assert server.raw_clients == 2
+        port = stalled.getsockname()[1]
+        mine = next(c for c in server._clients if c.peer.endswith(f":{port}"))
+        mine.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        quiet.close()  # (it would read; here it leaves)
+        frames = 0
+        while not mine.dropped and frames < 100_000:  # until its kernel buffers and then its queue are full
+            server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            frames += 1
+        assert mine.dropped, "the stalled client's queue never filled"
+        deadline = time.monotonic() + GUARD
+        while mine in server._clients and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert mine not in server._clients
         master = open_socketcand_client(server)  # the slots are free again
         master.shutdown()
     finally:
-        first.close()
-        second.close()
+        quiet.close()
+        stalled.close()
         server.shutdown()
 
 

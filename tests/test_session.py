@@ -391,3 +391,20 @@ def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
     finally:
         loop.close()
     assert axis.power is PowerState.SWITCH_ON_DISABLED
+
+
+def test_a_controller_that_raises_stops_every_axis_instead_of_killing_the_loop(machine):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(0.01)
+    machine.advance(0.05)
+
+    def broken(ref, fb):
+        raise FloatingPointError("nan in the state")
+
+    machine.loop.axes["x"].ch.controller.step = broken
+    with pytest.raises(MotionFault, match="FloatingPointError"):
+        h.wait(1)
+    assert x.state == "off" and x.power in (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE)
+    machine.advance(0.05)  # the loop goes on cycling the (disabled) axis
+    assert machine.status()["faults"] == 1

@@ -570,3 +570,32 @@ def test_shutdown_wakes_a_blocked_recv_and_stops_the_io_thread(make, label):
     with pytest.raises(can.CanOperationError, match=f"{label} is shut down"):
         bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
     bus.shutdown()
+
+
+def test_served_bus_receive_queue_is_bounded_and_shutdown_still_wakes(monkeypatch):
+    """A client flooding faster than the emulator reads loses frames (counted), it does not grow memory;
+    shutting down with the queue full still wakes a reader."""
+    from drivectl.plant_emulator import served_bus
+
+    monkeypatch.setattr(served_bus, "RX_QUEUE_FRAMES", 10)
+    server = SocketcandServerBus(port=0)
+    client = open_socketcand_client(server)
+    try:
+        for i in range(50):
+            client.send(can.Message(arbitration_id=0x100 + i, data=b"", is_extended_id=False))
+        deadline = time.monotonic() + GUARD
+        while server._rx.qsize() + server.rx_overruns < 50 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert (server._rx.qsize(), server.rx_overruns) == (10, 40)
+        assert [recv(server).arbitration_id for _ in range(10)] == list(range(0x100, 0x10A))  # the first kept
+        for i in range(20):  # full again: the shutdown's sentinel must still get in
+            client.send(can.Message(arbitration_id=0x200 + i, data=b"", is_extended_id=False))
+        while server._rx.qsize() < 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert server._rx.full()
+    finally:
+        client.shutdown()
+        server.shutdown()
+    with pytest.raises(can.CanOperationError, match="shut down"):
+        for _ in range(11):  # what was queued, then the sentinel
+            server.recv(GUARD)

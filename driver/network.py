@@ -229,6 +229,7 @@ class BusLog(can.Listener):
         except ValueError as exc:
             raise ValueError(f"--bus-log {path}: {exc}") from None
         self.path = path
+        self._stopped = False
 
     def on_message_received(self, msg: can.Message) -> None:
         self.logger.on_message_received(can.Message(
@@ -242,7 +243,9 @@ class BusLog(can.Listener):
         self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
 
     def stop(self) -> None:
-        self.logger.stop()
+        if not self._stopped:  # the notifier stops its listeners and close_threaded does too
+            self._stopped = True
+            self.logger.stop()
 
 
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:

@@ -74,6 +74,12 @@ class SocketcandClientBus(SocketCanDaemonBus):
             socket.setdefaulttimeout(SOCKETCAND_HANDSHAKE_S)
             try:
                 bus = cls(channel=channel, **kwargs)
+            except can.CanError as exc:
+                said = str(exc)
+                if "could not open bus" in said:  # socketcand's answer to `< open NAME >` for a bus it lacks
+                    raise can.CanInitializationError(f"the server has no bus named {channel!r} (bus.channel): "
+                                                     f"{said}") from None
+                raise
             finally:
                 socket.setdefaulttimeout(before)
         bus._sock.settimeout(None)

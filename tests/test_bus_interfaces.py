@@ -233,3 +233,15 @@ def test_socketcand_server_going_away_is_one_warning_and_a_bus_error(caplog):
     finally:
         client.shutdown()
         server.shutdown()
+
+
+def test_socketcand_server_without_the_channel_is_one_line_naming_it():
+    from drivectl.plant_emulator.socketcand import SocketcandServerBus
+
+    server = SocketcandServerBus(port=0, channel="can0")
+    try:
+        with pytest.raises(BusOpenError, match=r"bus socketcand 127.0.0.1:\d+ \(can1\): cannot open: the server has no "
+                                               r"bus named 'can1' \(bus.channel\)"):
+            open_bus("socketcand", "can1", host="127.0.0.1", port=server.port)
+    finally:
+        server.shutdown()

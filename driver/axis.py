@@ -34,6 +34,7 @@ class FaultKind(Enum):
     IMPLAUSIBLE_POSITION = "implausible position"
     FOLLOWING_ERROR = "following error"
     SOFT_LIMIT = "soft position limit"
+    LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
 
 
 class AxisError(RuntimeError):

@@ -66,6 +66,9 @@ from drivectl.plant_emulator.models import Plant
 from drivectl.plant_emulator.pdo_rules import PdoRules, Rpdo, Tpdo
 from drivectl.plant_emulator.sdo_server import DriveSdoServer
 
+#: CiA 402 digital inputs (bit 0 negative limit, 1 positive limit, 2 home switch)
+DIGITAL_INPUTS = 0x60FD
+
 #: EMCY / 0x603F codes (CiA 301 table 21)
 RPDO_TIMEOUT_ERROR = 0x8250
 RPDO_SHORT_ERROR = 0x8210  # PDO not processed due to length error
@@ -140,6 +143,7 @@ class EmulatedDrive:
         faults: FaultInjector | None = None,
         boot_delay_ms: float = BOOT_DELAY_MS,
         sync_loss_ms: float | None = None,
+        io: object = None,
     ):
         if not 1 <= node_id <= 127:
             raise ValueError(f"emulated drive: node id must be 1..127, got {node_id}")
@@ -172,7 +176,7 @@ class EmulatedDrive:
         self.scale = EffortScale(rated_effort)
         self._rated_effort = rated_effort
         self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
-                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION))
+                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION), io=io)
         self.cycle_ms = plant.dt * 1000.0
         self.boot_delay_ms = float(boot_delay_ms)
         self.sync_loss_ms = sync_loss_ms
@@ -409,6 +413,8 @@ class EmulatedDrive:
             return self.mode
         if index == cia402.ERROR_REGISTER:
             return self.error_register
+        if index == DIGITAL_INPUTS:  # switches (session homing: controllers/homing.py)
+            return d.digital_inputs()
         return None
 
     def statusword(self) -> int:
@@ -485,6 +491,7 @@ class EmulatedDrive:
             cia402.ERROR_CODE: lambda: d.error_code,
             cia402.MODES_OF_OPERATION_DISPLAY: lambda: self.mode,
             cia402.ERROR_REGISTER: lambda: self.error_register,
+            DIGITAL_INPUTS: d.digital_inputs,
         }
         if index in live:
             return live[index]

@@ -1,10 +1,11 @@
 """The `drivectl` command line.
 
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
-bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
-ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
-position; axis stopped, trace kept with the fault in its metadata); 130 / 143 interrupted by SIGINT /
-SIGTERM (the axis quick-stopped and disabled, the trace kept).
+bus/drive refused a command, or the trace could not be written whole (disk full after the checks);
+2 bad input (one line on stderr naming the file and the key); 3 a fault ended the run (drive fault,
+lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position; axis stopped, trace kept
+with the fault in its metadata); 130 / 143 interrupted by SIGINT / SIGTERM (the axis quick-stopped and
+disabled, the trace kept).
 """
 
 from __future__ import annotations
@@ -40,7 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
                        "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
-    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--plant", help="override the axis's plant: what the emulated drive plays (built-in name or TOML "
+                   "file; also the controller's model unless --model or the axis's model key says otherwise)")
+    t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
+                   "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -56,12 +60,18 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(t)
     t.add_argument("--sim", action="store_true",
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
                    "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+    from drivectl.tools.learn import add_learning_arguments
+
+    add_learning_arguments(t)
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -75,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.shell import add_shell_parser
+
+    add_shell_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -117,10 +130,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.identify import IdentificationError
+    from drivectl.tools.learn import LearnedFileError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError)
+                 FaultSpecError, LearnedFileError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -148,6 +162,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "shell":
+            from drivectl.tools.shell import cmd_shell
+
+            return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:
@@ -174,17 +192,23 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
 
 def _trace(args: argparse.Namespace, request: StopRequest) -> int:
+    import functools
+
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
-    from drivectl.tools.config import ConfigError, load_config
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools import checks
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
     cfg = load_config(args.config)
-    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    names = checks.parse_axes(args.axis)
+    checks.check_number("--noise", args.noise, lo=0.0, unit="effort unit")
+    checks.check_seed(args.seed)
+    checks.check_number("--duration", args.duration, lo=0.0, lo_open=True, unit="s")
     effects = [parse_effect(text) for text in args.effect]
     faults = [parse_fault(text) for text in args.fault] if args.fault else None
     for f in faults or ():
@@ -196,15 +220,42 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
         check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
+    builders = {}  # fresh instances of the same controllers (the learning measures the loop with them)
     for name in names:
         ac = cfg.axis(name)
         ctrl_name = args.controller or ac.controller
-        settings = ac.controller_settings if ctrl_name == ac.controller else {}
-        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+        settings = ac.controller_settings
+        if ctrl_name != ac.controller:  # keep what the other controller also takes; say what is dropped
+            settings, dropped = checks.carry_settings(settings, ctrl_name)
+            if dropped:
+                print(f"trace: --controller {ctrl_name}: axes.{name}.controller_settings {', '.join(dropped)} "
+                      f"dropped (not {ctrl_name} settings){'; kept ' + ', '.join(settings) if settings else ''}",
+                      file=sys.stderr)
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
-    if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
-        raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
+        builders[name] = functools.partial(make_controller, ctrl_name, cfg.cycle_s, settings, plant=models[name],
+                                           axis=name)
+    from drivectl.tools.learn import prepare_repeated, run_repeated
+
+    plan = prepare_repeated(args, cfg, names, profiles, specs)  # --repeat / --learn / --learned, checked now
+    checks.check_bus_log(args.bus_log)
+    # the outputs last (this creates --out): a folder we can write, with room for what the run records
+    if args.duration is not None:
+        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration")
+    else:  # as the run will name it
+        from drivectl.profiles.base import profile_name
+
+        longest = max(profiles.values(), key=lambda p: p.duration)
+        source = getattr(longest, "source", None)
+        cycles = check_run_length(longest.duration, cfg.cycle_s,
+                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
+    checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
+    if plan is not None:  # the repetitions (tools/learn.py)
+        return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
+                            models=models, controllers=controllers, builders=builders, effects=effects,
+                            faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)
@@ -212,8 +263,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                    "config": cfg.source}
+            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
+                    "bus": machine.bus, "config": cfg.source}
             if effects:
                 meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
             if faults:
@@ -232,16 +283,40 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
-        result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
-                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request)
+        from drivectl.controllers.servo import plan_run
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        # an axis away from its profile's start is moved there first, shown and agreed (tools/approach.py)
+        approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
+        if approach is not None:
+            consent(args.approach, moves)
+        plan = plan_run(channels, args.duration)  # before the approach: the run follows it within a cycle
+        result = None
+        if approach is not None:
+            result = run_channels(approach, disable_at_end=False, pace=args.paced, stop_request=request)
+        if result is None or result.ok:
+            # the traces stream to --out as the run goes (a killed run leaves its .partial files)
+            result = run_channels(plan, on_start=started, pace=args.paced,
+                                  progress=not args.quiet and sys.stderr.isatty(), stop_request=request,
+                                  stream=Path(args.out))
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         machine.close()
+    from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
+
     out = Path(args.out)
+    clean_stale(out)
     written = []
-    for name, tr in result.traces.items():
-        written.append(tr.write(out / f"{name}.csv"))
+    unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
+    for name, tr in result.traces.items():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
+        if name in result.paths:  # streamed during the run
+            written.append(result.paths[name])
+            continue
+        try:  # the stream failed (disk full, folder gone): once more, whole
+            written.append(write_trace(out, tr))
+        except (TraceWriteError, OSError) as exc:
+            unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")
     if not args.no_plot and result.cycles > 1:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
@@ -261,6 +336,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
+    for line in unwritten:
+        print(f"drivectl: {line}", file=sys.stderr)
     if result.stop is StopReason.INTERRUPTED:
         name = request.name or "SIGINT"
         how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
@@ -277,7 +354,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if not result.ok:
         print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
         return EXIT_STOPPED
-    return EXIT_OK
+    return EXIT_STOPPED if unwritten else EXIT_OK
 
 
 def cmd_plot(args: argparse.Namespace) -> int:

@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.conformance import add_conformance_parser
+
+    add_conformance_parser(sub)
     from drivectl.tools.shell import add_shell_parser
 
     add_shell_parser(sub)
@@ -162,6 +165,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "conformance":
+            from drivectl.tools.conformance import cmd_conformance
+
+            return cmd_conformance(args)
         if args.command == "shell":
             from drivectl.tools.shell import cmd_shell
 

@@ -110,7 +110,7 @@ class Fault:
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
-            stale = self.safe_state.get(self.axis) == "unknown"
+            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
         out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
                               else "unknown (0x603F could not be read)")
@@ -462,38 +462,19 @@ def _bring_up(channels: Sequence[Channel]) -> None:
 
 
 def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
-    """Quick stop now (the command goes out in this very cycle), then disable; cycle until every
-    drive reports a safe state, counting the cycles (into ``fault``), and go on when an axis fails:
-    the others must still be stopped. Where the TPDOs no longer bring the statusword, it is read by
-    SDO; where nothing answers, the state stays unknown (the drive's own watchdogs take over)."""
-    for ch in channels:
-        _quietly(ch.axis.quick_stop)
-        _quietly(ch.axis.write, 0.0)
-    safe_after: dict[str, int | None] = {}
-    for ch in channels:
-        if ch.axis.power in SAFE_STATES:
-            safe_after[ch.axis.name] = 0
-    for j in range(1, STATE_CHANGE_CYCLES + 1):
-        if len(safe_after) == len(channels):
-            break
-        if not _stop_cycle(channels):
-            break  # nothing answers: the drives' own watchdogs must stop them
-        for ch in channels:
-            if ch.axis.name not in safe_after and ch.axis.power in SAFE_STATES:
-                safe_after[ch.axis.name] = j
-    for ch in channels:
-        if ch.axis.power is not PowerState.FAULT:
-            _quietly(ch.axis.disable)
-    for _ in range(STATE_CHANGE_CYCLES):
-        if all(ch.axis.power not in _STILL_CHANGING for ch in channels):
-            break
-        if not _stop_cycle(channels):
-            break
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (controllers/safe_stop.py); the cycles to a
+    confirmed safe state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    from drivectl.controllers.safe_stop import stop_axes
+
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
     if fault is not None:
-        for ch in channels:
-            fault.safe_after[ch.axis.name] = safe_after.get(ch.axis.name)
-            fault.safe_state[ch.axis.name] = ch.axis.power.value if ch.axis.name in safe_after else "unknown"
-        faulted = next((ch.axis for ch in channels if ch.axis.name == fault.axis), None)
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
         if faulted is not None:
             fault.statusword = getattr(faulted, "statusword", None)
             code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None

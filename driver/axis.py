@@ -34,6 +34,9 @@ class FaultKind(Enum):
     IMPLAUSIBLE_POSITION = "implausible position"
     FOLLOWING_ERROR = "following error"
     SOFT_LIMIT = "soft position limit"
+    ROGUE_RPDO = "rogue rpdo"
+    ROGUE_SYNC = "rogue sync"
+    FOREIGN_NMT = "foreign nmt"
 
 
 class AxisError(RuntimeError):

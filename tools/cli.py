@@ -261,21 +261,25 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
+    # every word about the axes' end state comes from what the drives reported after the stop
+    from drivectl.controllers.safe_stop import all_confirmed, end_state_line
+
+    f = result.fault
+    ended = f"({end_state_line(f.safe_state, f.safe_after)})" if f is not None else ""
     if result.stop is StopReason.INTERRUPTED:
         name = request.name or "SIGINT"
-        how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
+        how = f"quick stop {ended}" if result.enabled else "before the axes were enabled: nothing moved"
         print(f"drivectl: interrupted by {name} after {result.cycles} cycles; {how}, trace kept", file=sys.stderr)
         return 128 + request.signum if request.signum else 130
-    if result.fault is not None and result.stop is StopReason.FAULT:
-        f = result.fault
-        state = ", ".join(f"{n} {s}" + (f" after {f.safe_after[n]} cycle(s)" if f.safe_after.get(n) is not None
-                                        else " to the master (no answer: the drive's own watchdogs stop it)")
-                          for n, s in f.safe_state.items())
-        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped ({state}), trace kept",
+    if f is not None and result.stop is StopReason.FAULT:
+        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped {ended}, trace kept",
               file=sys.stderr)
         return EXIT_FAULT
     if not result.ok:
-        print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
+        if f is not None and not all_confirmed(f.safe_after):  # a limit stop the drive did not confirm
+            print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
+            return EXIT_FAULT
+        print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
         return EXIT_STOPPED
     return EXIT_OK
 

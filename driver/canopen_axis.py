@@ -535,10 +535,10 @@ class CanopenAxis:
 
     @property
     def counters(self) -> dict[str, int]:
-        """Cycles bridged for lack of TPDOs, TPDO frames that came too late, and this drive's frames the
-        master dropped as malformed (wrong length, remote; cumulative)."""
+        """Cycles bridged for lack of TPDOs, TPDO frames that came too late, and the frames the master
+        dropped as malformed (wrong length, remote; this drive's and the broadcast NMT/SYNC; cumulative)."""
         return {"tpdo_lost_cycles": self.lost_total, "tpdo_late_frames": self.late_total,
-                "malformed_frames": self.frame_guard.count(self.node_id)}
+                "malformed_frames": self.frame_guard.count(self.node_id) + self.frame_guard.count(0)}
 
     def drive_limits(self) -> dict[str, object]:
         """The limits the drive holds (0x6065/0x6066 following error, 0x607D software position limits),

@@ -28,6 +28,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
+from drivectl.controllers.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -73,6 +74,8 @@ class Limits:
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
     max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
+    #: m: a second difference of the position beyond this is an encoder glitch (controllers/run_checks.py)
+    max_jump: float = 5e-4
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
@@ -87,6 +90,8 @@ class Limits:
             raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
         if not self.max_speed > 0:
             raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
+        if not self.max_jump > 0:
+            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
 
 
 #: power states with the torque off: where a stop must end
@@ -414,6 +419,14 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
+    if k == 0 or "_jump" not in ch.__dict__:
+        ch.__dict__["_jump"] = JumpState()  # per run: the channel's own, beside last_position
+    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if jump is not None:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
+            "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
             f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")

@@ -39,7 +39,7 @@ import can
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     MASTER_NODE_ID,
@@ -55,10 +55,6 @@ from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.units import EffortScale, Encoder
-
-#: what :meth:`CanopenAxis.last_resort` may do when neither the quick stop (RPDO, SDO) nor NMT Stop is
-#: confirmed: "nmt-reset" (NMT Reset Node: the drive restarts with its power stage off) or "none"
-LAST_RESORTS = ("nmt-reset", "none")
 
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32

@@ -3,8 +3,13 @@
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
 bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
 ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
-position; axis stopped, trace kept with the fault in its metadata); 130 / 143 interrupted by SIGINT /
-SIGTERM (the axis quick-stopped and disabled, the trace kept).
+position, a rogue RPDO or SYNC producer, a foreign NMT command; axis stopped, trace kept with the fault
+in its metadata), or a completed run passed a ``[checks]`` fault threshold, or a stop the drive did
+not confirm (the line says the axis may still be powered and what was tried); 4 completed with
+warnings (missed deadlines, clipped or extrapolated cycles past a ``[checks]`` warning threshold: a
+line each); 130 / 143 interrupted by SIGINT / SIGTERM (quick stop, the axes' end state as the drives
+reported it; the trace kept). Every word about an axis's end state comes from the drive's own
+statusword after the stop (controllers/safe_stop.py).
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from drivectl import __version__
 if TYPE_CHECKING:
     from drivectl.controllers.interrupt import StopRequest
 
-EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT, EXIT_WARNINGS = 0, 1, 2, 3, 4
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -227,9 +232,14 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         machine.close()
         raise
 
+    # a paced run is not lockstep, whatever the bus's description says
+    bus_text = machine.bus.replace("lockstep", "paced on the wall clock") if args.paced else machine.bus
+    if args.paced:
+        for ch in channels:
+            ch.meta["bus"] = bus_text
     try:
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
@@ -238,6 +248,11 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         machine.close()
+    from drivectl.controllers.run_checks import apply, assess
+
+    checked = assess(result.traces, cfg.checks) if result.ok else None
+    if checked is not None:
+        apply(result.traces, checked)  # the verdict goes into the trace before it is written
     out = Path(args.out)
     written = []
     for name, tr in result.traces.items():
@@ -275,6 +290,17 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped {ended}, trace kept",
               file=sys.stderr)
         return EXIT_FAULT
+    if checked is not None and checked.faults:
+        for line in checked.faults:
+            print(f"drivectl: fault: run check: {line}", file=sys.stderr)
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        return EXIT_FAULT
+    if checked is not None and checked.warnings:
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        print("drivectl: completed with warnings", file=sys.stderr)
+        return EXIT_WARNINGS
     if not result.ok:
         if f is not None and not all_confirmed(f.safe_after):  # a limit stop the drive did not confirm
             print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)

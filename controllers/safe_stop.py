@@ -57,8 +57,8 @@ class AxisStop:
         if self.confirmed_after is not None:
             by = f" (reported by {self.source}{steps})" if self.source and steps else ""
             return f"{axis.power.value}{by}"
-        last = (f"it last reported {axis.power.value} by {self.source}" if getattr(axis, "state_fresh", False)
-                else "no confirmed report from the drive")
+        last = (f"it last reported {axis.power.value} by {getattr(axis, 'state_source', '') or 'its transport'}"
+                if getattr(axis, "state_fresh", False) else "no confirmed report from the drive")
         return f"{MAY_BE_POWERED}: {last}; tried {', '.join(self.tried)}"
 
 

@@ -56,6 +56,9 @@ from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.units import EffortScale, Encoder
 
+#: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
+_HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
+
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
 
@@ -364,8 +367,12 @@ class CanopenAxis:
         if len(data) != 1:  # the guard drops these on our networks; a bare canopen Network may not
             self.frame_guard.reject(can_id, f"{len(data)} data bytes, CiA 301 says 1")
             return
+        state = data[0]
+        if state not in _HEARTBEAT_STATES:  # not a state CiA 301 knows: a garbled frame, not a report
+            self.frame_guard.reject(can_id, f"heartbeat state 0x{state:02X} is no NMT state", "heartbeat-state")
+            return
         self._last_heartbeat = self.clock.cycle
-        state = self.heartbeat_state = data[0]
+        self.heartbeat_state = state
         if not self._connected:
             return
         if state == 0:

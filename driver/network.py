@@ -13,20 +13,32 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import socket
+import threading
 import time
 from typing import Any
 
 import can
 import canopen
 
+from drivectl.driver.axis import AxisConfigError
 from drivectl.driver.frame_guard import FrameGuard
 
 log = logging.getLogger("drivectl.frames")
 
-#: python-can interfaces the drivers know how to open
-INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
+#: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
+SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
+#: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
+INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
+#: keys a [bus.options] table may not set: they have keys of their own in [bus]
+RESERVED_OPTIONS = frozenset({"interface", "channel", "bitrate", "host", "port", "can_filters", "bustype", "context"})
 
 _channel_counter = itertools.count()
+
+
+class BusOpenError(AxisConfigError):
+    """The bus could not be opened (driver library or device missing, nothing listening): bad input, one
+    line naming the interface and what python-can said, raised before anything moved."""
 
 
 def unique_virtual_channel(prefix: str = "drivectl") -> str:
@@ -34,19 +46,141 @@ def unique_virtual_channel(prefix: str = "drivectl") -> str:
     return f"{prefix}-{os.getpid()}-{next(_channel_counter)}"
 
 
-def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs: Any) -> can.BusABC:
-    """A python-can bus by interface name, with the settings each needs here."""
+def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **kwargs: Any) -> can.BusABC:
+    """A python-can bus by interface name, with the settings each needs here; ``kwargs`` (the [bus.options]
+    table, host/port for socketcand) go to ``can.Bus`` as they are and win over the defaults set here.
+
+    Any failure to open is one :class:`BusOpenError` line: python-can's own message (and what it logged
+    while trying: Kvaser's "canlib is unavailable" comes only as a log record), never its traceback."""
     if interface not in INTERFACES:
-        raise ValueError(f"bus: interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
+        raise BusOpenError(f"bus.interface: {interface!r} is not an interface python-can knows "
+                           f"(one of {', '.join(INTERFACES)})")
     if interface == "slcan":
         kwargs.setdefault("sleep_after_open", 0)  # else each open costs 2 s
     if bitrate is not None and interface != "virtual":
         kwargs["bitrate"] = bitrate
     if interface == "virtual":
         kwargs.setdefault("receive_own_messages", False)
+    where = f"bus {interface}:{channel}"
     if interface == "socketcand":
         kwargs.setdefault("tcp_tune", True)  # TCP_NODELAY + QUICKACK: else Nagle and delayed ACKs cost ~40 ms a cycle
-    return can.Bus(interface=interface, channel=channel, **kwargs)
+        host, port = kwargs.get("host", "127.0.0.1"), kwargs.get("port", 29536)
+        where = f"bus socketcand {host}:{port} ({channel})"
+        _probe_socketcand(where, host, port)
+    with _CanLogCapture() as captured:
+        try:
+            bus = _construct(interface, channel, kwargs)
+        except Exception as exc:  # noqa: BLE001 - python-can raises anything here (Kvaser without canlib: NameError)
+            said = _what_python_can_said(interface, exc, captured.records)
+            raise BusOpenError(f"{where}: cannot open: {said}") from None
+    captured.replay()
+    return bus
+
+
+def _construct(interface: str, channel: str | int, kwargs: dict[str, Any]) -> can.BusABC:
+    if interface != "socketcand":
+        return can.Bus(interface=interface, channel=channel, **kwargs)
+    # python-can's socketcand client reads its handshake with blocking recv()s on a socket without a
+    # timeout: a server that accepts and then says nothing would hang us for ever. Its socket is created
+    # inside the constructor, so the default timeout is set around it, then the socket is made blocking
+    # again (the receive path selects with its own timeout).
+    with _DEFAULT_TIMEOUT_LOCK:
+        before = socket.getdefaulttimeout()
+        socket.setdefaulttimeout(SOCKETCAND_HANDSHAKE_S)
+        try:
+            bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        finally:
+            socket.setdefaulttimeout(before)
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    if isinstance(sock, socket.socket):
+        sock.settimeout(None)
+    return bus
+
+
+#: seconds a socketcand server has to accept and greet, and to finish the handshake
+SOCKETCAND_HANDSHAKE_S = 3.0
+_DEFAULT_TIMEOUT_LOCK = threading.Lock()
+
+
+def _probe_socketcand(where: str, host: str, port: int) -> None:
+    """Check that a socketcand server listens and greets before python-can's client tries: when nothing
+    listens, that client retries connect() in a busy loop for 10 s logging one warning per attempt
+    (~880 000 lines). One connection, one ``< hi >`` read with a deadline, then closed."""
+    try:
+        with socket.create_connection((host, port), timeout=SOCKETCAND_HANDSHAKE_S) as probe:
+            greeting = b""
+            deadline = time.monotonic() + SOCKETCAND_HANDSHAKE_S
+            while not greeting.endswith(b">") and len(greeting) < 64:
+                probe.settimeout(max(0.001, deadline - time.monotonic()))
+                chunk = probe.recv(64)
+                if not chunk:
+                    break
+                greeting += chunk
+    except ConnectionRefusedError:
+        raise BusOpenError(f"{where}: cannot open: nothing listens there (connection refused); start the "
+                           f"emulator (drivectl emulate --socketcand {port}) or socketcand first") from None
+    except TimeoutError:
+        raise BusOpenError(f"{where}: cannot open: no socketcand greeting within {SOCKETCAND_HANDSHAKE_S:g} s") \
+            from None
+    except OSError as exc:
+        raise BusOpenError(f"{where}: cannot open: {exc.strerror or exc}") from None
+    if greeting.strip() != b"< hi >":
+        text = greeting.decode("ascii", "replace").strip() or "the connection closed"
+        raise BusOpenError(f"{where}: cannot open: not a socketcand server (it said {text!r}, expected '< hi >')")
+
+
+class _CanLogCapture(logging.Handler):
+    """Holds python-can's log records while a bus opens: on failure they complete the one-line error,
+    on success the distinct ones are replayed once (never a flood: at most a few records are kept)."""
+
+    KEEP = 8
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+        self.dropped = 0
+        self._logger = logging.getLogger("can")
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.levelno < logging.WARNING:
+            return
+        if len(self.records) < self.KEEP and all(r.getMessage() != record.getMessage() for r in self.records):
+            self.records.append(record)
+        else:
+            self.dropped += 1
+
+    def __enter__(self) -> _CanLogCapture:
+        self._propagate = self._logger.propagate
+        self._logger.addHandler(self)
+        self._logger.propagate = False
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._logger.removeHandler(self)
+        self._logger.propagate = self._propagate
+
+    def replay(self) -> None:
+        for record in self.records:
+            logging.getLogger(record.name).handle(record)
+
+
+#: what python-can logged when an interface's module loaded without its library: it says so only once,
+#: at import, and the next open fails with nothing but a NameError
+_LOAD_NOTES: dict[str, str] = {}
+
+
+def _what_python_can_said(interface: str, exc: BaseException, records: list[logging.LogRecord]) -> str:
+    said = " ".join(str(exc).split()) or type(exc).__name__
+    logged = [m for m in (" ".join(r.getMessage().split()) for r in records) if m and m not in said]
+    if isinstance(exc, NameError | AttributeError):
+        # python-can's vendor modules load without their library (logging that it is missing) and fail
+        # on its first call: the log record is what says why
+        said = f"{type(exc).__name__}: {said}"
+        if logged:
+            _LOAD_NOTES[interface] = logged[0].rstrip(".")
+        why = _LOAD_NOTES.get(interface, "its driver library did not load")
+        said = f"{why} (python-can then failed: {said})"
+    return said if len(said) <= 400 else said[:397] + "..."
 
 
 class Lockstep:

@@ -97,6 +97,10 @@ class FaultSpec:
                                      + (f" (known: {', '.join(known)})" if known else " (it takes none)"))
             if not isinstance(value, (int, float)) or (math.isnan(value) and key != "position"):
                 raise FaultSpecError(f"fault {self.kind}: {key}: expected a number, got {value!r}")
+        for key in ("code", "index"):  # 16-bit objects of the drive (0x603F, an OD index)
+            value = self.params.get(key)
+            if value is not None and not (value == int(value) and 0 <= value <= 0xFFFF):
+                raise FaultSpecError(f"fault {self.kind}: {key}: expected an integer 0..0xFFFF, got {value:g}")
         if "cycles" in self.params and not self.params["cycles"] >= 1:
             raise FaultSpecError(f"fault {self.kind}: cycles: must be >= 1, got {self.params['cycles']}")
         _check_frame_params(self)

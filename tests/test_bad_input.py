@@ -253,6 +253,27 @@ CASES = [
     ("fault-spec-unknown-kind", "args", None, [*BUS, "--fault", "brownout@1"], ("--fault", "'brownout'")),
     ("duration-longer-than-a-run-records", "args", None, [*SIM, "--duration", "1e12"],
      ("--duration", "1e+12 s", "3600000 cycles")),
+    # issue 18: values that gave tracebacks (or, x,x under --sim, a wrong run with exit 0)
+    ("noise-negative", "args", None, [*SIM, "--noise", "-1"], ("--noise", "-1", ">= 0")),
+    ("noise-nan", "args", None, [*SIM, "--noise", "nan"], ("--noise", "nan", "finite")),
+    ("axis-empty", "args", None, [*SIM, "--axis", ""], ("--axis", "no axis name")),
+    ("axis-only-a-comma", "args", None, [*SIM, "--axis", ","], ("--axis", "','", "empty axis name")),
+    ("axis-twice", "args", None, [*SIM, "--axis", "x,x"], ("--axis", "'x,x'", "named twice")),
+    ("axis-twice-on-the-bus", "args", None, [*BUS, "--axis", "x,y,x"], ("--axis", "named twice")),
+    ("seed-negative", "args", None, [*SIM, "--seed", "-1"], ("--seed", "-1")),
+    ("fault-emcy-code-too-large", "args", None, [*BUS, "--fault", "emcy-fault:code=99999999@0.01"],
+     ("--fault", "code", "0..0xFFFF", "99999999")),
+    ("bus-log-unknown-format", "args", None, [*BUS, "--bus-log", "/tmp/frames.mf4"], ("--bus-log", "format")),
+    ("bus-log-missing-folder", "args", None, [*BUS, "--bus-log", "/nonexistent-drivectl/frames.asc"],
+     ("--bus-log", "/nonexistent-drivectl", "does not exist")),
+    ("config-axis-name-escapes", "config", edit(CONFIG, "[axes.x]\nnode_id = 1", '[axes."../../escaped"]\nnode_id = 1')
+     .replace("[axes.x.", '[axes."../../escaped".'), SIM, ("{path}", "axes.'../../escaped'", "letters, digits")),
+    ("config-max-lost-cycles-too-many", "config", edit(CONFIG, "max_lost_cycles = 3 ", "max_lost_cycles = 65535 "),
+     BUS, ("{path}", "axes.x.max_lost_cycles", "0..10", "65535")),
+    ("trace-duplicate-column", "trace", TRACE.replace("pos_m,effort\n", "pos_m,effort,pos_m\n").replace(
+        "0\n", "0,0.047\n"), ["summary"], ("{path}", "'pos_m' appears twice")),
+    ("trace-dt-wrong", "trace", edit(TRACE, "# dt_s: 0.001", "# dt_s: 1"), ["summary"],
+     ("{path}", "dt_s", "time column steps 0.001")),
     # -- config init over an existing file ---------------------------------------------------------------
     ("config-init-over-existing", "init", "# my machine, hand-tuned\ncycle_s = 0.002\n", [],
      ("{path}", "exists", "--force")),

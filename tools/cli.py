@@ -45,7 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
                        "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
-    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--plant", help="override the axis's plant: what the emulated drive plays (built-in name or TOML "
+                   "file; also the controller's model unless --model or the axis's model key says otherwise)")
+    t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
+                   "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -67,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
                    "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+    from drivectl.tools.learn import add_learning_arguments
+
+    add_learning_arguments(t)
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -122,10 +128,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.identify import IdentificationError
+    from drivectl.tools.learn import LearnedFileError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError)
+                 FaultSpecError, LearnedFileError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -183,13 +190,17 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
-    from drivectl.tools.config import ConfigError, load_config
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools import checks
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
     cfg = load_config(args.config)
-    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    names = checks.parse_axes(args.axis)
+    checks.check_number("--noise", args.noise, lo=0.0, unit="effort unit")
+    checks.check_seed(args.seed)
+    checks.check_number("--duration", args.duration, lo=0.0, lo_open=True, unit="s")
     effects = [parse_effect(text) for text in args.effect]
     faults = [parse_fault(text) for text in args.fault] if args.fault else None
     for f in faults or ():
@@ -201,15 +212,38 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
         check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
     for name in names:
         ac = cfg.axis(name)
         ctrl_name = args.controller or ac.controller
-        settings = ac.controller_settings if ctrl_name == ac.controller else {}
-        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+        settings = ac.controller_settings
+        if ctrl_name != ac.controller:  # keep what the other controller also takes; say what is dropped
+            settings, dropped = checks.carry_settings(settings, ctrl_name)
+            if dropped:
+                print(f"trace: --controller {ctrl_name}: axes.{name}.controller_settings {', '.join(dropped)} "
+                      f"dropped (not {ctrl_name} settings){'; kept ' + ', '.join(settings) if settings else ''}",
+                      file=sys.stderr)
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
-    if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
-        raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
+    from drivectl.tools.learn import prepare_repeated, run_repeated
+
+    plan = prepare_repeated(args, cfg, names, profiles, specs)  # --repeat / --learn / --learned, checked now
+    checks.check_bus_log(args.bus_log)
+    # the outputs last (this creates --out): a folder we can write, with room for what the run records
+    if args.duration is not None:
+        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration")
+    else:  # as the run will name it
+        from drivectl.profiles.base import profile_name
+
+        longest = max(profiles.values(), key=lambda p: p.duration)
+        source = getattr(longest, "source", None)
+        cycles = check_run_length(longest.duration, cfg.cycle_s,
+                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
+    checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
+    if plan is not None:  # the repetitions (tools/learn.py)
+        return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
+                            models=models, controllers=controllers, effects=effects, faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)
@@ -217,8 +251,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                    "config": cfg.source}
+            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
+                    "bus": machine.bus, "config": cfg.source}
             if effects:
                 meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
             if faults:
@@ -249,14 +283,16 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     finally:
         machine.close()
     from drivectl.controllers.run_checks import apply, assess
+    from drivectl.tools.trace_stream import clean_stale, write_trace
 
     checked = assess(result.traces, cfg.checks) if result.ok else None
     if checked is not None:
         apply(result.traces, checked)  # the verdict goes into the trace before it is written
     out = Path(args.out)
+    clean_stale(out)
     written = []
-    for name, tr in result.traces.items():
-        written.append(tr.write(out / f"{name}.csv"))
+    for tr in result.traces.values():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
+        written.append(write_trace(out, tr))
     if not args.no_plot and result.cycles > 1:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))

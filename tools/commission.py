@@ -51,6 +51,9 @@ def add_commission_parsers(sub: Any) -> None:
     i.add_argument("--out", default="traces", metavar="DIR", help="where the identified plant TOML goes")
     i.add_argument("--sim", action="store_true", help="SimAxis instead of the emulated drive on the bus")
     i.add_argument("--json", action="store_true")
+    i.add_argument("--write-config", nargs="?", const="", metavar="FILE",
+                   help="also point axes.AXIS.plant at the identified plant in FILE (default: the --config in "
+                   "use), comments kept, the old file backed up as FILE.STAMP.bak")
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -64,28 +67,10 @@ def cmd_config(args: argparse.Namespace) -> int:
         atomic_write_text(path, DEFAULT_CONFIG_TOML)
         print(f"wrote {path} (use it with: drivectl --config {path} ...)")
         return 0
+    from drivectl.tools.config_io import show_text
+
     cfg = load_config(args.config)
-    print(f"# resolved configuration from {cfg.source}")
-    print(f"cycle_s = {cfg.cycle_s}")
-    b = cfg.bus
-    print(f'\n[bus]\ninterface = "{b.interface}"\nchannel = "{b.channel}"\nbitrate = {b.bitrate}')
-    if b.interface == "socketcand":
-        print(f'host = "{b.host}"\nport = {b.port}')
-    for name, ac in cfg.axes.items():
-        lim = ac.limits
-        print(f"\n[axes.{name}]")
-        print(f"node_id = {ac.node_id}\nplant = \"{ac.plant}\"\ncontroller = \"{ac.controller}\"\n"
-              f"profile = \"{ac.profile}\"\nrated_effort = {ac.rated_effort}\n"
-              f"encoder_m_per_count = {ac.encoder_m_per_count:g}\neds = \"{ac.eds}\"")
-        if ac.controller_settings:
-            print(f"[axes.{name}.controller_settings]")
-            for k, v in ac.controller_settings.items():
-                print(f"{k} = {json.dumps(v)}")
-        print(f"[axes.{name}.limits]")
-        if lim.position is not None:
-            print(f"position_m = [{lim.position[0]}, {lim.position[1]}]")
-        print(f"max_effort = {lim.max_effort}\nfollowing_error_m = {lim.following_error}\n"
-              f"following_time_s = {lim.following_time}")
+    print(show_text(cfg), end="")
     return 0
 
 
@@ -275,6 +260,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from drivectl.tools.trace import atomic_write_text
 
     cfg = load_config(args.config)
+    if getattr(args, "write_config", None) is not None:  # before anything moves
+        from drivectl.tools.config_io import target_file
+
+        args.write_config = str(target_file(args.write_config, args.config))
     t0 = time.perf_counter()
     result = identify_axis(cfg, args.axis, sim=args.sim)
     keys = IDENTIFY_KEYS
@@ -287,6 +276,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     path = Path(args.out) / f"{args.axis}-identified.toml"
     atomic_write_text(path, spec.to_toml(f"identified by drivectl identify --axis {args.axis} on "
                                           f"{'SimAxis' if args.sim else cfg.bus.interface}; load with --plant {path}"))
+    merged = _merge_plant(args, cfg, path)
     rel = {k: ident[k] / current[keys[k]] - 1.0 for k in keys}
     if args.json:
         print(json.dumps({"axis": args.axis, "identified": ident, "model": {k: current[keys[k]] for k in keys},
@@ -298,4 +288,18 @@ def cmd_identify(args: argparse.Namespace) -> int:
     for k in keys:
         print(f"{k + ' (' + units[k] + ')':<16} {ident[k]:>10.3f} {current[keys[k]]:>12.3f} {100 * rel[k]:>+10.3f} %")
     print(f"wrote {path}")
+    if merged:
+        print(merged)
     return 0
+
+
+def _merge_plant(args: argparse.Namespace, cfg: Any, plant_file: Path) -> str:
+    """``--write-config``: axes.AXIS.plant = the new plant file (absolute: plant paths are read from the
+    working folder). Returns the line to print ("" when not asked)."""
+    if getattr(args, "write_config", None) is None:
+        return ""
+    from drivectl.tools.config_io import merge_into, target_file
+
+    target = target_file(args.write_config, args.config)
+    backup = merge_into(target, args.axis, {"plant": str(plant_file.resolve())})
+    return f"merged axes.{args.axis}.plant into {target}" + (f" (old file kept as {backup})" if backup else "")

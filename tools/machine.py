@@ -15,7 +15,7 @@ master has stopped sending (it died, its bus went off).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -101,6 +101,56 @@ def plant_specs(cfg: MachineConfig, names: Sequence[str], plant: str | None = No
             spec = spec.with_effect(ename, **eparams)
         specs[name] = spec
     return specs
+
+
+def model_specs(cfg: MachineConfig, names: Sequence[str], model: str | None = None, plant: str | None = None,
+                plants: Mapping[str, PlantSpec] | None = None) -> dict[str, PlantSpec]:
+    """The plant each axis's controller believes (its *model*), beside the plant the drive plays.
+
+    ``model`` (``--model``) wins, then the axis's ``model`` key, then the plant the run uses (``plant``,
+    i.e. ``--plant``, else ``axes.NAME.plant``) -- so ``--plant`` alone still changes both, and a
+    mismatched machine is ``--plant TRUE --model BELIEVED``. The model never carries the run's
+    ``--effect`` effects: those are what the machine does and the controller does not know. An error
+    names the flag or the configuration key; a model whose effort unit differs from the plant's
+    (``plants``, when given) is refused.
+    """
+    out = {}
+    for name in names:
+        ac = cfg.axis(name)
+        if model is not None:
+            what, text = "--model", model
+        elif ac.model is not None:
+            what, text = f"{cfg.source}: axes.{name}.model", ac.model
+        elif plant is not None:
+            what, text = "--plant", plant
+        else:
+            what, text = f"{cfg.source}: axes.{name}.plant", ac.plant
+        try:
+            spec = load_plant(text)
+        except PlantError as exc:
+            raise PlantError(f"{what}: {exc}") from None
+        if plants is not None and name in plants and plants[name].effort_unit != spec.effort_unit:
+            raise PlantError(f"{what}: model {spec.name} has effort in {spec.effort_unit}, axis {name}'s plant "
+                             f"{plants[name].name} in {plants[name].effort_unit}")
+        out[name] = spec
+    return out
+
+
+def axis_model(cfg: MachineConfig, name: str) -> str:
+    """The model axis ``name`` of ``cfg`` names: its ``model`` key, else its ``plant``."""
+    ac = cfg.axis(name)
+    return ac.model if ac.model is not None else ac.plant
+
+
+def with_model(cfg: MachineConfig, name: str, model: str | None) -> MachineConfig:
+    """``cfg`` with axis ``name``'s model set to ``model`` (``--model``; None leaves it), for tools that
+    read the model from the configuration (tune's search runs on it)."""
+    if model is None:
+        return cfg
+    from dataclasses import replace
+
+    model_specs(cfg, [name], model)  # validated now: one line naming --model
+    return replace(cfg, axes={**cfg.axes, name: replace(cfg.axis(name), model=model)})
 
 
 def axis_profile(cfg: MachineConfig, name: str, profile: str | None = None) -> Profile:
@@ -204,10 +254,7 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     """Masters on a bus that reaches drives in another process (slcan, socketcand, socketcan):
     a notifier thread receives, each cycle waits for its TPDOs against a deadline."""
     b = cfg.bus
-    kwargs: dict[str, Any] = {}
-    if b.interface == "socketcand":
-        kwargs = {"host": b.host, "port": b.port}
-    bus = open_bus(b.interface, b.channel, b.bitrate, **kwargs)
+    bus = open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs())
     net = threaded_network(bus)
     machine = Machine({}, specs, f"{b.interface}:{b.channel}")
     machine._closers.append(lambda: close_threaded(net))
@@ -278,8 +325,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
         for drive in session.drives.values():
             drive.boot()
         return session
-    kwargs: dict[str, Any] = {"host": b.host, "port": b.port} if b.interface == "socketcand" else {}
-    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **kwargs))
+    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs()))
     session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])
     session.watch_nmt()
     return session

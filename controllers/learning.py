@@ -40,6 +40,9 @@ class LearnedFeedforward(Controller):
         self.inner.reset()
         self._k = 0
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        self.inner.prepare(profile, times)  # the inner controller's reference preview (controllers/base.py)
+
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k
         self._k = k + 1

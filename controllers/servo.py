@@ -29,7 +29,7 @@ import numpy as np
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.run_checks import JumpState, position_jump
-from drivectl.driver.axis import Axis, AxisError, FaultKind
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
 from drivectl.tools.trace import Trace, format_value
@@ -157,6 +157,8 @@ class Channel:
     #: first cycle of the current excursion outside the following-error window
     following_since: int | None = field(default=None, init=False, repr=False)
     last_position: float | None = field(default=None, init=False, repr=False)
+    #: cycles whose command was clipped to max_effort (since the run or the enable began)
+    clipped: int = field(default=0, init=False, repr=False)
 
 
 def run(
@@ -174,27 +176,25 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
-def run_channels(
-    channels: Sequence[Channel],
-    *,
-    duration: float | None = None,
-    progress: bool = False,
-    disable_at_end: bool = True,
-    on_start: Callable[[int], None] | None = None,
-    pace: bool = False,
-    stop_request: StopRequest | None = None,
-) -> RunResult:
-    """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
+@dataclass
+class RunPlan:
+    """A run checked and sampled before anything moves: the channels, the cycle times and every
+    channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths)."""
 
-    ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
-    interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
-    wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
-    worst lateness are measured and written into the trace metadata, never hidden.
+    channels: Sequence[Channel]
+    dt: float
+    t: np.ndarray
+    refs: list[list[list[float]]]
 
-    SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
-    ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
-    command), otherwise the run routes them itself while it lasts (from the main thread).
-    """
+    @property
+    def cycles(self) -> int:
+        return len(self.t)
+
+
+def plan_run(channels: Sequence[Channel], duration: float | None = None) -> RunPlan:
+    """Check the channels and their profiles against the limits and sample the references (LimitError
+    or ValueError, nothing moved). Planning a second run before the first ends (an approach move, then
+    the profile) lets the second follow the first within one cycle."""
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -210,135 +210,230 @@ def run_channels(
         what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
     n = check_run_length(total, dt, what)
     t = np.arange(n) * dt
-
     refs = []
     for ch in channels:
         _check_profile(ch, float(t[-1]))
         refs.append([a.tolist() for a in ch.profile.sample(t)])
-    rec = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in channels]
-    clipped = [0] * len(channels)
-    stop, detail, k_done = StopReason.COMPLETED, "", 0
-    fault: Fault | None = None
-    counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in channels]
-    enabled = PowerState.OPERATION_ENABLED
+    return RunPlan(channels, dt, t, refs)
 
+
+def run_channels(
+    channels: Sequence[Channel] | RunPlan,
+    *,
+    duration: float | None = None,
+    progress: bool = False,
+    disable_at_end: bool = True,
+    on_start: Callable[[int], None] | None = None,
+    pace: bool = False,
+    stop_request: StopRequest | None = None,
+) -> RunResult:
+    """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
+
+    Read top-down: :func:`plan_run` (checks, references; nothing moves), :func:`_bring_up` (enable),
+    :func:`_run_cycles` (the cycle: :func:`sample_axis` -> :func:`control` -> record ->
+    :func:`check_and_write` per axis), then the ending (:func:`_safe_stop` on a fault or an interrupt,
+    :func:`_disable_all` on completion) and :class:`Recording` turning the arrays into traces.
+
+    ``channels`` may be a :class:`RunPlan` already made (``duration`` is then ignored).
+    ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
+    interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
+    wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
+    worst lateness are measured and written into the trace metadata, never hidden.
+    ``disable_at_end=False`` leaves the axes enabled (zero effort until the next run takes them).
+
+    SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
+    ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
+    command), otherwise the run routes them itself while it lasts (from the main thread).
+    """
+    plan = channels if isinstance(channels, RunPlan) else plan_run(channels, duration)
+    channels = plan.channels
+    rec = Recording(plan)
     for ch in channels:
         ch.controller.reset()
+        prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+        if prepare is not None:
+            prepare(ch.profile, plan.t)
+        ch.clipped = 0
+    pacer = Pacer(plan.dt) if pace else None
     signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
     with signals as request:
-        bar = None
-        k = 0
-        started = False
-        try:
-            if request.signum:
-                raise _Interrupted  # before anything is enabled: nothing moves
-            started = True
-            _bring_up(channels)
-            bar = _progress(n, progress)
-            pacer = Pacer(dt) if pace else None
-            for k in range(n):
-                if request.signum:
-                    raise _Interrupted  # at a cycle boundary: no frame is half-handled
-                if pacer is not None:
-                    pacer.wait(k)
-                for i, ch in enumerate(channels):
-                    try:
-                        fb = ch.axis.read()
-                    except AxisError as exc:
-                        fault = Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc))
-                        raise
-                    if ch.axis.power is not enabled:
-                        fault = _left_operation(ch, k)
-                        raise AxisError(fault.detail, FaultKind(fault.kind))
-                    pr, vr, ar, jr = refs[i]
-                    pos = fb.position
-                    ref = Reference(pr[k], vr[k], ar[k], jr[k])
-                    u = ch.controller.step(ref, fb)
-                    lim = ch.limits
-                    if u > lim.max_effort or u < -lim.max_effort:
-                        u = lim.max_effort if u > 0 else -lim.max_effort
-                        clipped[i] += 1
-                    r = rec[i]
-                    r["pos_m"][k] = pos
-                    r["vel_m_s"][k] = fb.velocity
-                    r["effort"][k] = u
-                    reason = _violation(ch, k, dt, pos, pr[k])
-                    if reason is not None:
-                        stop, kind, detail = reason
-                        fault = Fault(kind.value, ch.axis.name, k, detail)
-                        raise _Stop
-                    ch.axis.write(u)
-                k_done = k + 1
-                if k == 0 and on_start is not None:
-                    on_start(n)
-                if bar is not None and k % 250 == 0:
-                    bar.update(min(250, n - bar.n))
-        except _Stop:
-            k_done = k + 1
-            _safe_stop(channels, fault)
-        except (_Interrupted, KeyboardInterrupt):
-            stop = StopReason.INTERRUPTED
-            detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
-            fault = Fault("interrupted", channels[0].axis.name, k, detail)
-            if started:
-                _safe_stop(channels, fault)
-            else:
-                detail += " before the axes were enabled"
-                for ch in channels:
-                    fault.safe_after[ch.axis.name] = 0
-                    fault.safe_state[ch.axis.name] = ch.axis.power.value
-        except AxisError as exc:
-            stop, detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
-            if fault is None:  # raised by the bring-up or by a write
-                fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, detail)
-            _safe_stop(channels, fault)
-        finally:
-            if bar is not None:
-                bar.close()
-    if stop is StopReason.COMPLETED and disable_at_end:
-        for ch in channels:
-            ch.axis.disable()
-        _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
+        outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
+    if outcome.stop is StopReason.COMPLETED and disable_at_end:
+        _disable_all(channels)
+    return rec.result(outcome, pacer)
 
-    traces = {}
-    pacing = {}
-    if pace and k_done:
-        pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
-                  "missed_fraction": format_value(pacer.missed / k_done),
-                  "worst_late_ms": format_value(pacer.worst_late * 1e3)}
-    for i, ch in enumerate(channels):
-        cols = {
-            "time_s": t[:k_done],
-            "ref_m": np.asarray(refs[i][0][:k_done]),
-            "pos_m": rec[i]["pos_m"][:k_done],
-            "effort": rec[i]["effort"][:k_done],
-            "vel_m_s": rec[i]["vel_m_s"][:k_done],
-        }
-        meta = {
-            "axis": ch.axis.name,
-            "effort_unit": ch.axis.effort_unit,
-            "dt_s": format_value(dt),
-            **{k: format_value(v) for k, v in ch.controller.describe().items()},
-            **{k: format_value(v) for k, v in ch.meta.items()},
-            "cycles": str(k_done),
-            "stop": stop.value,
-            **pacing,
-        }
-        if detail:
-            meta["stop_detail"] = detail
-        if clipped[i]:
-            meta["effort_clipped_cycles"] = str(clipped[i])
-        for key, value in getattr(ch.axis, "counters", {}).items():
-            meta[key] = str(value - counters0[i].get(key, 0))
-        if fault is not None:
-            meta.update(fault.meta())
-            name = ch.axis.name
-            meta["safe_state"] = fault.safe_state.get(name, "unknown")
-            after = fault.safe_after.get(name)
-            meta["safe_after_cycles"] = "unknown" if after is None else str(after)
-        traces[ch.axis.name] = Trace(cols, meta)
-    return RunResult(traces, stop, detail, k_done, {ch.axis.name: c for ch, c in zip(channels, clipped, strict=True)},
-                     fault, started)
+
+@dataclass
+class _Outcome:
+    """How the cycles ended (filled by :func:`_run_cycles`)."""
+
+    stop: StopReason = StopReason.COMPLETED
+    detail: str = ""
+    fault: Fault | None = None
+    cycles: int = 0  # cycles recorded
+    started: bool = False  # the axes were asked to enable
+
+
+def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
+                on_start: Callable[[int], None] | None, progress: bool) -> _Outcome:
+    """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
+    channels, dt, n, refs = plan.channels, plan.dt, plan.cycles, plan.refs
+    out = _Outcome()
+    bar = None
+    k = 0
+    try:
+        if request.signum:
+            raise _Interrupted  # before anything is enabled: nothing moves
+        out.started = True
+        _bring_up(channels)
+        bar = _progress(n, progress)
+        for k in range(n):
+            if request.signum:
+                raise _Interrupted  # at a cycle boundary: no frame is half-handled
+            if pacer is not None:
+                pacer.wait(k)
+            for i, ch in enumerate(channels):
+                fb = sample_axis(ch, k)
+                pr, vr, ar, jr = refs[i]
+                u = control(ch, Reference(pr[k], vr[k], ar[k], jr[k]), fb)
+                rec.record(i, k, fb, u)
+                check_and_write(ch, k, dt, fb.position, pr[k], u)
+            out.cycles = k + 1
+            if k == 0 and on_start is not None:
+                on_start(n)
+            if bar is not None and k % 250 == 0:
+                bar.update(min(250, n - bar.n))
+    except CycleFault as exc:
+        out.stop, out.fault, out.detail = exc.stop, exc.fault, exc.fault.detail
+        if exc.recorded:
+            out.cycles = k + 1
+        _safe_stop(channels, out.fault)
+    except (_Interrupted, KeyboardInterrupt):
+        out.stop = StopReason.INTERRUPTED
+        out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
+        out.fault = Fault("interrupted", channels[0].axis.name, k, out.detail)
+        if out.started:
+            _safe_stop(channels, out.fault)
+        else:
+            out.detail += " before the axes were enabled"
+            for ch in channels:
+                out.fault.safe_after[ch.axis.name] = 0
+                out.fault.safe_state[ch.axis.name] = ch.axis.power.value
+    except AxisError as exc:  # raised by the bring-up or by a write
+        out.stop, out.detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
+        out.fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, out.detail)
+        _safe_stop(channels, out.fault)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
+
+# -- one axis, one cycle (shared by run_channels and the resident loop, controllers/loop.py) ------------
+class CycleFault(Exception):
+    """A cycle found a reason to stop: a fault or a limit (``fault``), before or after the sample was
+    recorded (``recorded``)."""
+
+    def __init__(self, stop: StopReason, fault: Fault, recorded: bool):
+        super().__init__(fault.detail)
+        self.stop = stop
+        self.fault = fault
+        self.recorded = recorded
+
+
+def sample_axis(ch: Channel, k: int) -> Feedback:
+    """This cycle's sample of an axis that must be in Operation Enabled (else CycleFault)."""
+    try:
+        fb = ch.axis.read()
+    except AxisError as exc:
+        raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
+                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
+                         False) from None
+    if ch.axis.power is not PowerState.OPERATION_ENABLED:
+        raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
+    return fb
+
+
+def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
+    """The control law, clipped to the effort limit (clipped cycles counted)."""
+    u = ch.controller.step(ref, fb)
+    lim = ch.limits.max_effort
+    if u > lim or u < -lim:
+        ch.clipped += 1
+        return lim if u > 0 else -lim
+    return u
+
+
+def check_and_write(ch: Channel, k: int, dt: float, pos: float, ref: float, u: float) -> None:
+    """The limits (:func:`_violation`), then the setpoint out; CycleFault (recorded) on a violation."""
+    reason = _violation(ch, k, dt, pos, ref)
+    if reason is not None:
+        stop, kind, detail = reason
+        raise CycleFault(stop, Fault(kind.value, ch.axis.name, k, detail), True)
+    ch.axis.write(u)
+
+
+class Recording:
+    """Position, velocity and effort of every cycle of a run, preallocated; turned into one
+    :class:`~drivectl.tools.trace.Trace` per axis at the end."""
+
+    def __init__(self, plan: RunPlan):
+        self.plan = plan
+        n = plan.cycles
+        self._cols = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in plan.channels]
+        self._rows = [(c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols]
+        self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
+
+    def record(self, i: int, k: int, fb: Feedback, u: float) -> None:
+        pos, vel, eff = self._rows[i]
+        pos[k] = fb.position
+        vel[k] = fb.velocity
+        eff[k] = u
+
+    def result(self, out: _Outcome, pacer: Pacer | None) -> RunResult:
+        plan, n = self.plan, out.cycles
+        pacing = {}
+        if pacer is not None and n:
+            pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
+                      "missed_fraction": format_value(pacer.missed / n),
+                      "worst_late_ms": format_value(pacer.worst_late * 1e3)}
+        traces = {}
+        for i, ch in enumerate(plan.channels):
+            cols = {"time_s": plan.t[:n], "ref_m": np.asarray(plan.refs[i][0][:n]),
+                    **{k: v[:n] for k, v in self._cols[i].items()}}
+            cols = {k: cols[k] for k in ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")}
+            meta = {
+                "axis": ch.axis.name,
+                "effort_unit": ch.axis.effort_unit,
+                "dt_s": format_value(plan.dt),
+                **{k: format_value(v) for k, v in ch.controller.describe().items()},
+                **{k: format_value(v) for k, v in ch.meta.items()},
+                "cycles": str(n),
+                "stop": out.stop.value,
+                **pacing,
+            }
+            if out.detail:
+                meta["stop_detail"] = out.detail
+            if ch.clipped:
+                meta["effort_clipped_cycles"] = str(ch.clipped)
+            for key, value in getattr(ch.axis, "counters", {}).items():
+                meta[key] = str(value - self._counters0[i].get(key, 0))
+            if out.fault is not None:
+                meta.update(out.fault.meta())
+                name = ch.axis.name
+                meta["safe_state"] = out.fault.safe_state.get(name, "unknown")
+                after = out.fault.safe_after.get(name)
+                meta["safe_after_cycles"] = "unknown" if after is None else str(after)
+            traces[ch.axis.name] = Trace(cols, meta)
+        return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
+                         out.fault, out.started)
+
+
+def _disable_all(channels: Sequence[Channel]) -> None:
+    """The end of a completed run: every axis to Switch On Disabled through the cycle."""
+    for ch in channels:
+        ch.axis.disable()
+    _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
 
 
 class Pacer:
@@ -370,10 +465,6 @@ class Pacer:
             self.worst_late = late
         if late > 0.5 * self.dt:
             self.missed += 1
-
-
-class _Stop(Exception):
-    """Internal: a limit ended the run."""
 
 
 class _Interrupted(Exception):

@@ -43,6 +43,7 @@ class FaultKind(Enum):
     ROGUE_RPDO = "rogue rpdo"
     ROGUE_SYNC = "rogue sync"
     FOREIGN_NMT = "foreign nmt"
+    LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
 
 
 class AxisError(RuntimeError):

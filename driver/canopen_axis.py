@@ -473,6 +473,14 @@ class CanopenAxis:
         fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * self.dt, last.velocity)
         return fb
 
+    @property
+    def torque_actual(self) -> float:
+        """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""
+        try:
+            return self.scale.from_permille(self._raw[1][1])
+        except (IndexError, TypeError):
+            return math.nan
+
     def refresh_state(self) -> PowerState:
         """The power state by SDO (0x6041), when the TPDOs do not bring it."""
         self.statusword = self._sdo(cia402.STATUSWORD)

@@ -214,7 +214,7 @@ class LockstepNetwork(canopen.Network):
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
-        self.log: can.Listener | None = None
+        self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
         #: every received frame is checked before canopen's dispatch (driver/frame_guard.py)
         self.frame_guard = FrameGuard()
@@ -223,7 +223,7 @@ class LockstepNetwork(canopen.Network):
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
         if self.log is not None:
-            self.log.on_message_received(_logged(can_id, data, remote, rx=False))
+            self.log.sent(can_id, data, remote)
         self.lockstep.settle()
         if self.recv_error is not None:
             exc, self.recv_error = self.recv_error, None
@@ -300,20 +300,61 @@ def threaded_network(bus: can.BusABC) -> canopen.Network:
     return net
 
 
+class BusLog(can.Listener):
+    """A python-can Logger (format by the file's suffix: .asc, .blf, .log, .csv, .trc) that stamps every
+    frame, sent or received, with one clock: the host's ``time.time()`` when this process sends or receives
+    it. Received frames arrive stamped by whoever received them first (the kernel, an adapter's own
+    counter, PCAN's boot-relative clock, the socketcand server's text), so they are restamped here."""
+
+    def __init__(self, path: str) -> None:
+        try:
+            self.logger = can.Logger(path)
+        except ValueError as exc:
+            raise ValueError(f"--bus-log {path}: {exc}") from None
+        self.path = path
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.logger.on_message_received(can.Message(
+            timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, channel=msg.channel,
+            dlc=msg.dlc, data=msg.data, is_fd=msg.is_fd, is_rx=msg.is_rx, bitrate_switch=msg.bitrate_switch,
+            error_state_indicator=msg.error_state_indicator, check=False))
+
+    def sent(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """A frame this process sent (python-can buses do not echo them)."""
+        self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
+
+    def stop(self) -> None:
+        self.logger.stop()
+
+
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:
     return can.Message(timestamp=time.time(), arbitration_id=can_id, data=bytes(data), is_remote_frame=remote,
                        is_extended_id=can_id > 0x7FF, is_rx=rx)
 
 
-def attach_bus_log(network: LockstepNetwork, path: str) -> can.Listener:
-    """Record every frame the network sends and receives (on a bus: every frame) through python-can's
-    Logger, the format chosen by the file's suffix (.asc, .blf, .log, .csv, .trc)."""
-    try:
-        logger = can.Logger(path)
-    except ValueError as exc:
-        raise ValueError(f"--bus-log {path}: {exc}") from None
-    network.log = logger
-    return logger
+def log_sent_frames(network: canopen.Network, log: BusLog) -> None:
+    """Wrap ``network.send_message`` so that every frame it sends is logged after it went out."""
+    send = network.send_message
+
+    def send_and_log(can_id: int, data: bytes, remote: bool = False) -> None:
+        send(can_id, data, remote)
+        log.sent(can_id, data, remote)
+
+    network.send_message = send_and_log  # type: ignore[method-assign]
+
+
+def attach_bus_log(network: canopen.Network, path: str) -> BusLog:
+    """Record every frame the network sends and receives (on a bus: every frame) on one clock
+    (:class:`BusLog`). A lockstep network logs in its own send/pump; a threaded one gets the log as a
+    notifier listener (stopped by :func:`close_threaded`) and its sends wrapped."""
+    log = BusLog(path)
+    if isinstance(network, LockstepNetwork):
+        network.log = log
+    else:
+        network.notifier.add_listener(log)
+        log_sent_frames(network, log)
+    return log
 
 
 def close_threaded(net: canopen.Network) -> None:

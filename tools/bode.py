@@ -127,6 +127,9 @@ class ExcitedController(Controller):
         self.inner.reset()
         self._k = 0
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        self.inner.prepare(profile, times)  # the inner controller's reference preview
+
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k
         self._k += 1
@@ -385,6 +388,8 @@ def measure_frf(
     model: str | None = None,
     plant: str | None = None,
     controller: Controller | None = None,
+    noise: float = 0.0,
+    seed: int = 0,
 ) -> BodeResult:
     """Hold ``axis_name`` under its configured controller, add a multisine of peak ``amplitude``
     (effort unit; default 5 % of max_effort) on [fmin, fmax] Hz to the effort for ``seconds``, and
@@ -425,7 +430,7 @@ def measure_frf(
     ctrl = ExcitedController(inner, exc)
     hold = hold_position(cfg, axis_name)
     profile = Hold(hold, periods * PERIOD_S)
-    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold})
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold}, noise=noise, seed=seed)
     try:
         meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": "hold + multisine on the effort",
                 "bus": machine.bus,

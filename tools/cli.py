@@ -1,15 +1,16 @@
 """The `drivectl` command line.
 
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
-bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
-ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
-position, a rogue RPDO or SYNC producer, a foreign NMT command; axis stopped, trace kept with the fault
-in its metadata), or a completed run passed a ``[checks]`` fault threshold, or a stop the drive did
-not confirm (the line says the axis may still be powered and what was tried); 4 completed with
-warnings (missed deadlines, clipped or extrapolated cycles past a ``[checks]`` warning threshold: a
-line each); 130 / 143 interrupted by SIGINT / SIGTERM (quick stop, the axes' end state as the drives
-reported it; the trace kept). Every word about an axis's end state comes from the drive's own
-statusword after the stop (controllers/safe_stop.py).
+bus/drive refused a command, or the trace could not be written whole (disk full after the checks);
+2 bad input (one line on stderr naming the file and the key); 3 a fault ended the run (drive fault,
+lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position, a rogue RPDO or SYNC
+producer, a foreign NMT command; axis stopped, trace kept with the fault in its metadata), or a
+completed run passed a ``[checks]`` fault threshold, or a stop the drive did not confirm (the line says
+the axis may still be powered and what was tried); 4 completed with warnings (missed deadlines,
+clipped or extrapolated cycles past a ``[checks]`` warning threshold: a line each); 130 / 143
+interrupted by SIGINT / SIGTERM (quick stop, the axes' end state as the drives reported it; the trace
+kept). Every word about an axis's end state comes from the drive's own statusword after the stop
+(controllers/safe_stop.py).
 """
 
 from __future__ import annotations
@@ -283,7 +284,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     finally:
         machine.close()
     from drivectl.controllers.run_checks import apply, assess
-    from drivectl.tools.trace_stream import clean_stale, write_trace
+    from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
 
     checked = assess(result.traces, cfg.checks) if result.ok else None
     if checked is not None:
@@ -291,8 +292,12 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     out = Path(args.out)
     clean_stale(out)
     written = []
+    unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
     for tr in result.traces.values():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
-        written.append(write_trace(out, tr))
+        try:
+            written.append(write_trace(out, tr))
+        except (TraceWriteError, OSError) as exc:
+            unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")
     if not args.no_plot and result.cycles > 1:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
@@ -312,6 +317,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
+    for line in unwritten:
+        print(f"drivectl: {line}", file=sys.stderr)
     # every word about the axes' end state comes from what the drives reported after the stop
     from drivectl.controllers.safe_stop import all_confirmed, end_state_line
 
@@ -343,7 +350,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             return EXIT_FAULT
         print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
         return EXIT_STOPPED
-    return EXIT_OK
+    return EXIT_STOPPED if unwritten else EXIT_OK
 
 
 def cmd_plot(args: argparse.Namespace) -> int:

@@ -188,6 +188,11 @@ class AxisConfig:
     limits_from_drive: frozenset[str] = frozenset()
     #: the plant the controller believes (built-in name or TOML file); None: the same as the plant
     model: str | None = None
+    #: [axes.NAME.motion], [axes.NAME.homing], [axes.NAME.emulator] (the session's moves, homing and the
+    #: emulated drive's switches: controllers/motion.py, controllers/homing.py)
+    motion: Any = None
+    homing: Any = None
+    emulator: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -273,7 +278,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "last_resort"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
+                   "homing", "emulator", "last_resort"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -345,6 +351,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
             model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
+            **_session_tables(src, k, raw),
             last_resort=_choice(src, f"{k}.last_resort", raw.get("last_resort", "nmt-reset"), LAST_RESORTS),
         )
     owner: dict[int, str] = {}
@@ -375,6 +382,19 @@ def _checks(raw: Any, src: str) -> RunChecks:
         return RunChecks(**values)
     except ValueError as exc:
         raise ConfigError(f"{src}: {exc}") from None
+
+
+def _session_tables(src: str, key: str, raw: dict[str, Any]) -> dict[str, Any]:
+    """motion, homing and emulator tables of an axis, parsed by their own modules."""
+    from drivectl.controllers.homing import parse_emulator_io, parse_homing
+    from drivectl.controllers.motion import parse_motion
+
+    try:
+        return {"motion": parse_motion(src, f"{key}.motion", raw.get("motion")),
+                "homing": parse_homing(src, f"{key}.homing", raw.get("homing")),
+                "emulator": parse_emulator_io(src, f"{key}.emulator", raw.get("emulator"))}
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _count(src: str, key: str, value: Any) -> int:

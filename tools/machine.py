@@ -19,8 +19,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import can
-
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
@@ -197,7 +195,7 @@ def open_machine(
             ac = cfg.axis(name)
             axes[name] = SimAxis(specs[name].build(dt), name=name, resolution=ac.encoder_m_per_count,
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
-                                 initial_position=start.get(name, 0.0))
+                                 initial_position=start.get(name, 0.0), io=ac.emulator)
         return Machine(axes, specs, "sim (SimAxis, no bus)")
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)
@@ -222,7 +220,8 @@ def open_machine(
                 injector = machine.injectors[name] = FaultInjector(mine, bus=machine.master_bus)
             drive = EmulatedDrive(emu_net, ac.node_id, specs[name].build(dt), rated_effort=ac.rated_effort,
                                   resolution=ac.encoder_m_per_count, force_noise=noise, seed=seed + i,
-                                  initial_position=start.get(name, 0.0), faults=injector)
+                                  initial_position=start.get(name, 0.0), faults=injector,
+                                  io=ac.emulator)
             machine.drives[name] = drive
             machine._closers.append(drive.close)
             drive.boot()
@@ -259,7 +258,7 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     machine = Machine({}, specs, f"{b.interface}:{b.channel}")
     machine._closers.append(lambda: close_threaded(net))
     if bus_log:
-        net.notifier.add_listener(can.Logger(bus_log))
+        attach_bus_log(net, bus_log)  # sent and received frames, on one clock
     try:
         _connect_masters(machine, net, cfg, names, specs)
     except BaseException:

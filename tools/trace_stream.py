@@ -75,7 +75,8 @@ def estimate_bytes(rows: int, columns: int) -> int:
 
 def check_output_folder(folder: str | Path, flag: str = "--out", need_bytes: int = 0) -> Path:
     """Refuse, before anything moves, an output folder the run could not write: not a folder, not
-    writable, or with less room than ``need_bytes``. Creates the folder (and parents) when missing.
+    writable, or with less room than ``need_bytes``. A missing folder is not made here (the writer makes
+    it), but the place it would go must be writable.
     Raises TraceWriteError with one line naming ``flag`` and the folder."""
     path = Path(folder)
     try:
@@ -86,11 +87,16 @@ def check_output_folder(folder: str | Path, flag: str = "--out", need_bytes: int
     if path.exists() and not path.is_dir():
         raise TraceWriteError(f"{flag} {path}: exists and is not a folder (give a folder; the trace is named "
                               "AXIS-STAMP.csv inside it)")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise TraceWriteError(f"{flag} {path}: cannot create the folder: {exc.strerror or exc}") from None
-    probe = path / f".drivectl-probe.{os.getpid()}.tmp"
+    # a missing folder is made by the writer; here only its nearest existing ancestor is probed, so a run
+    # refused later (a bus that cannot open) leaves nothing behind, not even an empty folder
+    where = path
+    while not where.exists():
+        if where.parent == where:
+            break
+        where = where.parent
+    if not where.is_dir():
+        raise TraceWriteError(f"{flag} {path}: cannot create the folder: {where} is not a folder")
+    probe = where / f".drivectl-probe.{os.getpid()}.tmp"
     try:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         try:
@@ -99,9 +105,11 @@ def check_output_folder(folder: str | Path, flag: str = "--out", need_bytes: int
             os.close(fd)
             os.unlink(probe)
     except OSError as exc:
-        raise TraceWriteError(f"{flag} {path}: cannot write there: {exc.strerror or exc}") from None
+        why = exc.strerror or exc
+        raise TraceWriteError(f"{flag} {path}: cannot write there: {why}" if where == path else
+                              f"{flag} {path}: cannot create the folder: {where}: {why}") from None
     if need_bytes:
-        free = shutil.disk_usage(path).free
+        free = shutil.disk_usage(where).free
         if free < need_bytes:
             raise TraceWriteError(f"{flag} {path}: {free / 1e6:.1f} MB free, the run needs about "
                                   f"{need_bytes / 1e6:.1f} MB")

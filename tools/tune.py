@@ -224,6 +224,11 @@ class _Guard:
         self.prev: np.ndarray | None = None
         self.k = 0
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        prepare = getattr(self.inner, "prepare", None)
+        if prepare is not None:
+            prepare(profile, times)
+
     def step(self, reference: Any, feedback: Any) -> np.ndarray:
         with np.errstate(all="ignore"):
             u = np.broadcast_to(np.asarray(self.inner.step(reference, feedback), dtype=float), (self.n,))

@@ -510,8 +510,8 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
-    if k == 0 or "_jump" not in ch.__dict__:
-        ch.__dict__["_jump"] = JumpState()  # per run: the channel's own, beside last_position
+    if last is None or "_jump" not in ch.__dict__:
+        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
     jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (

@@ -97,6 +97,12 @@ class FaultSpec:
                                      + (f" (known: {', '.join(known)})" if known else " (it takes none)"))
             if not isinstance(value, (int, float)) or (math.isnan(value) and key != "position"):
                 raise FaultSpecError(f"fault {self.kind}: {key}: expected a number, got {value!r}")
+        jump = self.params.get("jump")
+        if jump is not None and not (math.isfinite(jump) and abs(jump) <= 1.0):  # the drive's 32-bit counts
+            raise FaultSpecError(f"fault {self.kind}: jump: expected a finite jump of at most 1 m, got {jump:g}")
+        position = self.params.get("position")
+        if position is not None and math.isinf(position):
+            raise FaultSpecError(f"fault {self.kind}: position: expected a finite position in m, got {position:g}")
         for key in ("code", "index"):  # 16-bit objects of the drive (0x603F, an OD index)
             value = self.params.get(key)
             if value is not None and not (value == int(value) and 0 <= value <= 0xFFFF):

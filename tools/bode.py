@@ -576,7 +576,14 @@ def cmd_bode(args: argparse.Namespace) -> int:
     from drivectl.tools.config import load_config
 
     try:
+        from drivectl.tools.trace import TraceError
+        from drivectl.tools.trace_stream import check_output_folder
+
         cfg = load_config(getattr(args, "config", None))
+        try:  # before the axis moves: the response goes there after the measurement
+            check_output_folder(args.out, "--out", 5_000_000)
+        except TraceError as exc:
+            raise ConfigError(str(exc)) from None
         res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
                           fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant)
     except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:

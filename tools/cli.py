@@ -317,8 +317,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
 
     checked = assess(result.traces, cfg.checks) if result.ok else None
-    if checked is not None:
-        apply(result.traces, checked)  # the verdict goes into the trace before it is written
+    if checked is not None:  # the verdict into the traces (the streamed files' trailers too)
+        apply(result.traces, checked, result.paths)
     out = Path(args.out)
     clean_stale(out)
     written = []

@@ -192,6 +192,8 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
 
 def _trace(args: argparse.Namespace, request: StopRequest) -> int:
+    import functools
+
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
@@ -220,6 +222,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
     models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
+    builders = {}  # fresh instances of the same controllers (the learning measures the loop with them)
     for name in names:
         ac = cfg.axis(name)
         ctrl_name = args.controller or ac.controller
@@ -232,6 +235,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                       file=sys.stderr)
         controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
+        builders[name] = functools.partial(make_controller, ctrl_name, cfg.cycle_s, settings, plant=models[name],
+                                           axis=name)
     from drivectl.tools.learn import prepare_repeated, run_repeated
 
     plan = prepare_repeated(args, cfg, names, profiles, specs)  # --repeat / --learn / --learned, checked now
@@ -249,7 +254,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
     if plan is not None:  # the repetitions (tools/learn.py)
         return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
-                            models=models, controllers=controllers, effects=effects, faults=faults)
+                            models=models, controllers=controllers, builders=builders, effects=effects,
+                            faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)

@@ -300,7 +300,9 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
         if approach is not None:
             consent(args.approach, moves)
-        plan = plan_run(channels, args.duration)  # before the approach: the run follows it within a cycle
+        # before the approach (the run follows it within a cycle); recorded only as it streams to --out:
+        # the run's memory does not grow with its length (the summary reads the file back)
+        plan = plan_run(channels, args.duration, keep=False)
         result = None
         if approach is not None:
             result = run_channels(approach, disable_at_end=False, pace=args.paced, stop_request=request)

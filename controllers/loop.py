@@ -534,10 +534,19 @@ class ServoLoop:
     # -- faults and stops -----------------------------------------------------------------------------------
     def _fault(self, fault: Fault, stop: StopReason) -> None:
         """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
+        why = f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}"
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
+            if not rt.ring.count:
+                continue
             last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
-            for cap in [c for c in rt.captures if c.trigger.kind == "fault"]:
-                cap.complete(rt.ring, last, f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}")
+            armed = [c for c in rt.captures if c.trigger.kind == "fault"]
+            if not armed and self.fault_dir is not None:
+                # nobody asked, and the last seconds go to disk all the same: the whole ring
+                armed = [Capture(rt.name, CHANNELS, Trigger("fault"), min(rt.ring.count, rt.ring.size) - 1, 0,
+                                 self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
+                rt.captures.extend(armed)
+            for cap in armed:
+                cap.complete(rt.ring, last, why)
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:

@@ -9,6 +9,7 @@ import os
 import random
 import re
 import signal
+import struct
 import subprocess
 import sys
 
@@ -77,35 +78,45 @@ class Rig:
 
 
 def test_every_malformed_kind_during_a_run_is_counted_logged_once_and_the_drive_runs_on(caplog):
+    """The cycle is made of raw frames here (SYNC, RPDO): drivectl's own master would rightly stop at the
+    fuzzer's RPDOs as a second producer (issue 18 point 1, its side); this is the drive's side."""
     rig = Rig()
     try:
-        ax = rig.axis()
-        ax.enable()
-        for _ in range(5):
-            ax.read()
-            ax.write(0.0)
-        assert ax.power is cia402.PowerState.OPERATION_ENABLED
+        rig.lockstep.advance(0.05)
+        tpdos: list[bytes] = []
+        rig.master.subscribe(0x181, lambda cob, data, ts: tpdos.append(bytes(data)))
+        rig.master.send_message(0x601, b"\x2f\x60\x60\x00\x0a\x00\x00\x00")  # 0x6060 = 10 (CST)
+        rig.master.send_message(0x601, b"\x23\x16\x10\x01\x2c\x01\x7f\x00")  # consume 0x77F, 300 ms
+        rig.master.send_message(0x77F, b"\x05")
+        rig.master.send_message(0x000, b"\x01\x01")
+
+        def cycle(cw: int) -> None:
+            rig.master.send_message(0x080, b"")
+            rig.master.send_message(0x201, struct.pack("<Hh", cw, 0))
+
+        for cw in (0x06, 0x0F, 0x0F):
+            cycle(cw)
+        drive = rig.drive
+        assert drive.drive.power is cia402.PowerState.OPERATION_ENABLED
         caplog.set_level(logging.WARNING, logger="drivectl.emulator")
+        before = len(tpdos)
         for _round in range(3):
             for _kind, cob, data, remote in MALFORMED:
                 rig.send(cob, data, remote)
-                fb = ax.read()
-                ax.write(0.0)
-        drive = rig.drive
-        expected = {}
+                cycle(0x0F)
+        expected: dict[str, int] = {}
         for kind, *_ in MALFORMED:
             expected[kind] = expected.get(kind, 0) + 3
         assert dict(drive.frames.counts) == expected
         logged = [r.getMessage() for r in caplog.records if r.name == "drivectl.emulator"]
         for kind in expected:  # once per kind, however many came
             assert sum(f"({kind})" in m for m in logged) == 1, (kind, logged)
-        # the run went on: enabled, every cycle's TPDOs, and the position still reported
-        assert ax.power is cia402.PowerState.OPERATION_ENABLED and drive.drive.power is ax.power
-        assert ax.lost_total == 0 and abs(fb.position) < 1e-3
+        # the run went on: enabled, a TPDO every cycle
+        assert drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+        assert len(tpdos) - before == 3 * len(MALFORMED)
         # a short RPDO is answered with EMCY 0x8210 (then 0x0000 when the master's good RPDO follows),
         # a SYNC with two bytes with 0x8240 (CiA 301)
         assert 0x8210 in rig.emcy and 0x8240 in rig.emcy and 0x0000 in rig.emcy
-        ax.close()
     finally:
         rig.close()
 

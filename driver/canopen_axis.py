@@ -209,7 +209,16 @@ class CanopenAxis:
     def connect(self) -> None:
         """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
         self._boot()
-        self._check_identity()
+        # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
+        # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
+        # retries of canopen's client (0.3 s each) for this one exchange
+        sdo = self.node.sdo
+        retries = sdo.MAX_RETRIES
+        sdo.MAX_RETRIES = max(retries, 3)
+        try:
+            self._check_identity()
+        finally:
+            sdo.MAX_RETRIES = retries
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)

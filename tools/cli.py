@@ -296,9 +296,13 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         for ch in channels:
             ch.meta["bus"] = bus_text
     try:
+        from drivectl.tools.bus_budget import machine_load
+
+        load_text = "" if args.sim else f", {machine_load(cfg, names).text()}"
+
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text} "
-                  "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text}"
+                  f"{load_text} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         from drivectl.controllers.servo import plan_run
         from drivectl.tools.approach import consent, plan_approach, where_axes_stand

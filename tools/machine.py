@@ -186,6 +186,10 @@ def open_machine(
             raise FaultSpecError(f"--fault {spec}: axis {spec.axis!r} is not in this run ({', '.join(names)})")
     start = start or {}
     specs = plant_specs(cfg, names, plant, effects)
+    if not sim:
+        from drivectl.tools.bus_budget import check_bus_load
+
+        check_bus_load(cfg, names)  # over the ceiling: refused here, before any drive is configured or enabled
     dt = cfg.cycle_s
     if sim:
         if bus_log:

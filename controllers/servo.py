@@ -29,6 +29,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
+from drivectl.controllers.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -74,6 +75,8 @@ class Limits:
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
     max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
+    #: m: a second difference of the position beyond this is an encoder glitch (controllers/run_checks.py)
+    max_jump: float = 5e-4
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
@@ -88,6 +91,8 @@ class Limits:
             raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
         if not self.max_speed > 0:
             raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
+        if not self.max_jump > 0:
+            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
 
 
 #: power states with the torque off: where a stop must end
@@ -111,7 +116,7 @@ class Fault:
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
-            stale = self.safe_state.get(self.axis) == "unknown"
+            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
         out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
                               else "unknown (0x603F could not be read)")
@@ -599,6 +604,14 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
+    if last is None or "_jump" not in ch.__dict__:
+        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if jump is not None:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
+            "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
             f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
@@ -647,38 +660,19 @@ def _bring_up(channels: Sequence[Channel]) -> None:
 
 
 def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
-    """Quick stop now (the command goes out in this very cycle), then disable; cycle until every
-    drive reports a safe state, counting the cycles (into ``fault``), and go on when an axis fails:
-    the others must still be stopped. Where the TPDOs no longer bring the statusword, it is read by
-    SDO; where nothing answers, the state stays unknown (the drive's own watchdogs take over)."""
-    for ch in channels:
-        _quietly(ch.axis.quick_stop)
-        _quietly(ch.axis.write, 0.0)
-    safe_after: dict[str, int | None] = {}
-    for ch in channels:
-        if ch.axis.power in SAFE_STATES:
-            safe_after[ch.axis.name] = 0
-    for j in range(1, STATE_CHANGE_CYCLES + 1):
-        if len(safe_after) == len(channels):
-            break
-        if not _stop_cycle(channels):
-            break  # nothing answers: the drives' own watchdogs must stop them
-        for ch in channels:
-            if ch.axis.name not in safe_after and ch.axis.power in SAFE_STATES:
-                safe_after[ch.axis.name] = j
-    for ch in channels:
-        if ch.axis.power is not PowerState.FAULT:
-            _quietly(ch.axis.disable)
-    for _ in range(STATE_CHANGE_CYCLES):
-        if all(ch.axis.power not in _STILL_CHANGING for ch in channels):
-            break
-        if not _stop_cycle(channels):
-            break
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (controllers/safe_stop.py); the cycles to a
+    confirmed safe state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    from drivectl.controllers.safe_stop import stop_axes
+
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
     if fault is not None:
-        for ch in channels:
-            fault.safe_after[ch.axis.name] = safe_after.get(ch.axis.name)
-            fault.safe_state[ch.axis.name] = ch.axis.power.value if ch.axis.name in safe_after else "unknown"
-        faulted = next((ch.axis for ch in channels if ch.axis.name == fault.axis), None)
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
         if faulted is not None:
             fault.statusword = getattr(faulted, "statusword", None)
             code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None

@@ -338,7 +338,7 @@ def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError, of
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that the file is either the old one or the whole new one."""
-    atomic_write_bytes(path, text.encode())
+    atomic_write_bytes(path, text.encode("utf-8", errors="backslashreplace"))  # a non-UTF-8 path in metadata
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -232,7 +232,7 @@ class TraceWriter:
             raise TraceWriteError(f"{self.folder}: no free name for a trace of axis {self.axis}")
         self.path, self.partial = final, partial
         _OPEN_PARTIALS.add(partial.name)
-        self._file = os.fdopen(fd, "w", encoding="utf-8", newline="\n")
+        self._file = os.fdopen(fd, "w", encoding="utf-8", errors="backslashreplace", newline="\n")
         head = [MAGIC, *(f"# {k}: {v}" for k, v in self.meta.items()), f"# recording: {STREAMED}",
                 ",".join(self.columns)]
         try:

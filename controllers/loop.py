@@ -108,6 +108,9 @@ class Move:
         self._run: ProfileRun | None = None  # a run's record, once it ended
         self._trace_fn: Callable[[Move], Any] | None = None
         self._trace: Any = None
+        self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
+        self.path: Path | None = None  # where a streamed run's trace was written
+        self.record_error = ""
         #: what the loop starts when this ends done (a run after its approach move)
         self._then: Callable[[], None] | None = None
         self._done = threading.Event()
@@ -140,9 +143,25 @@ class Move:
         TimeoutError when it has not ended within ``timeout``."""
         if not self.loop.wait_until(self._done.is_set, timeout):
             raise TimeoutError(f"axis {self.axis}: {self.kind} not done within {timeout:g} s (status {self.status})")
+        self._close_record()
         if self.status == "fault":
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
         return self
+
+    def _close_record(self) -> None:
+        """A streamed run's file: closed (trailer, rename) on the waiting side, never in the cycle."""
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return
+        trailer = {"stop": self.status, "cycles": str(self._run.k if self._run else 0)}
+        if self.detail:
+            trailer["stop_detail"] = self.detail
+        if self.fault is not None:
+            trailer.update(self.fault.meta())
+        try:
+            self.path = writer.close(trailer)
+        except Exception as exc:  # noqa: BLE001 - the run's end is reported all the same
+            self.record_error = str(exc)
 
     def __repr__(self) -> str:
         where = f" at {self.position * 1e3:.6f} mm" if self.position is not None else ""
@@ -157,6 +176,11 @@ class ProfileRun:
     n: int
     k: int = 0
     rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
+    #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
+    append: Callable[..., None] | None = None
+
+    def __post_init__(self) -> None:
+        self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
 
     def next(self) -> Reference:
         k = self.k if self.k < self.n else self.n - 1
@@ -248,6 +272,7 @@ class ServoLoop:
         self._thread: threading.Thread | None = None
         self._watchdog: threading.Thread | None = None
         self._closing = False
+        self._closed = threading.Event()
         self._last_cycle_t: float | None = None
         self._stalled = False
         self._writer: threading.Thread | None = None
@@ -286,6 +311,7 @@ class ServoLoop:
                                timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
         finally:
             self._closing = True
+            self._closed.set()
             if self._thread is not None:
                 self._thread.join(timeout)
             if self._watchdog is not None:
@@ -384,9 +410,14 @@ class ServoLoop:
         rt.ring.push(k, ref.position, pos, u, fb.velocity, getattr(ax, "torque_actual", math.nan),
                      getattr(ax, "statusword", 0))
         if run is not None and run.k < run.n:
-            r = run.rec
-            r[0, run.k], r[1, run.k], r[2, run.k] = pos, fb.velocity, u
-            run.k += 1
+            i = run.k
+            r = run.rows
+            r[0][i] = pos
+            r[1][i] = fb.velocity
+            r[2][i] = u
+            if run.append is not None:
+                run.append(i * self.dt, ref.position, pos, u, fb.velocity)
+            run.k = i + 1
         if rt.captures:
             self._captures(rt, k)
         rt.move_started = False
@@ -610,8 +641,7 @@ class ServoLoop:
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
-        while not self._closing:
-            time.sleep(self.stall_s / 2)
+        while not self._closed.wait(self.stall_s / 2):
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue

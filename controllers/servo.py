@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from enum import Enum
+from pathlib import Path
 
 import numpy as np
 
@@ -129,6 +130,10 @@ class RunResult:
     fault: Fault | None = None
     #: False when the run ended before any axis was asked to enable (nothing moved)
     enabled: bool = True
+    #: the files the run streamed its traces to (``stream=``), per axis
+    paths: dict[str, Path] = field(default_factory=dict)
+    #: why a streamed trace could not be written whole (the run itself went on), per axis
+    stream_errors: dict[str, str] = field(default_factory=dict)
 
     @property
     def trace(self) -> Trace:
@@ -221,6 +226,7 @@ def run_channels(
     on_start: Callable[[int], None] | None = None,
     pace: bool = False,
     stop_request: StopRequest | None = None,
+    stream: str | Path | None = None,
 ) -> RunResult:
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
@@ -235,6 +241,10 @@ def run_channels(
     wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
     worst lateness are measured and written into the trace metadata, never hidden.
     ``disable_at_end=False`` leaves the axes enabled (zero effort until the next run takes them).
+    ``stream``: a folder the traces are written to as the run goes (tools/trace_stream.py: a
+    ``.partial`` file flushed every 100 ms, renamed when the run ends, a new name per run and
+    ``AXIS.csv`` the latest; ``RunResult.paths``); the files are opened before anything moves, so an
+    output that cannot be written stops the run before it starts (TraceWriteError).
 
     SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
     ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
@@ -242,19 +252,23 @@ def run_channels(
     """
     plan = channels if isinstance(channels, RunPlan) else plan_run(channels, duration)
     channels = plan.channels
-    rec = Recording(plan)
-    for ch in channels:
-        ch.controller.reset()
-        prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
-        if prepare is not None:
-            prepare(ch.profile, plan.t)
-        ch.clipped = 0
-    pacer = Pacer(plan.dt) if pace else None
-    signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
-    with signals as request:
-        outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
-    if outcome.stop is StopReason.COMPLETED and disable_at_end:
-        _disable_all(channels)
+    rec = Recording(plan, stream, pace)
+    try:
+        for ch in channels:
+            ch.controller.reset()
+            prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+            if prepare is not None:
+                prepare(ch.profile, plan.t)
+            ch.clipped = 0
+        pacer = Pacer(plan.dt) if pace else None
+        signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
+        with signals as request:
+            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
+        if outcome.stop is StopReason.COMPLETED and disable_at_end:
+            _disable_all(channels)
+    except BaseException:
+        rec.abandon()  # what was streamed stays, as a .partial file
+        raise
     return rec.result(outcome, pacer)
 
 
@@ -370,20 +384,56 @@ def check_and_write(ch: Channel, k: int, dt: float, pos: float, ref: float, u: f
 
 class Recording:
     """Position, velocity and effort of every cycle of a run, preallocated; turned into one
-    :class:`~drivectl.tools.trace.Trace` per axis at the end."""
+    :class:`~drivectl.tools.trace.Trace` per axis at the end, and (``stream``) written as the run goes
+    through :class:`~drivectl.tools.trace_stream.TraceWriter` (an append per cycle: no I/O in the cycle)."""
 
-    def __init__(self, plan: RunPlan):
+    COLUMNS = ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")
+
+    def __init__(self, plan: RunPlan, stream: str | Path | None = None, paced: bool = False):
         self.plan = plan
         n = plan.cycles
         self._cols = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in plan.channels]
         self._rows = [(c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols]
         self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
+        self._head = [self._head_meta(ch, paced) for ch in plan.channels]
+        self.writers: list = []
+        if stream is not None:
+            from drivectl.tools.trace_stream import TraceWriter
+
+            try:
+                for ch, head in zip(plan.channels, self._head, strict=True):
+                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head).start())
+            except BaseException:
+                self.abandon()
+                raise
+        self._append = [w.append for w in self.writers] if self.writers else None
+
+    def _head_meta(self, ch: Channel, paced: bool) -> dict[str, str]:
+        """What is known before the run: the header of a streamed trace."""
+        return {
+            "axis": ch.axis.name,
+            "effort_unit": ch.axis.effort_unit,
+            "dt_s": format_value(self.plan.dt),
+            **{k: format_value(v) for k, v in ch.controller.describe().items()},
+            **{k: format_value(v) for k, v in ch.meta.items()},
+            "clock": "wall clock, paced" if paced else "lockstep",
+        }
 
     def record(self, i: int, k: int, fb: Feedback, u: float) -> None:
         pos, vel, eff = self._rows[i]
         pos[k] = fb.position
         vel[k] = fb.velocity
         eff[k] = u
+        if self._append is not None:
+            self._append[i](k * self.plan.dt, self.plan.refs[i][0][k], fb.position, u, fb.velocity)
+
+    def abandon(self) -> None:
+        for w in self.writers:
+            try:
+                w.abandon()
+            except Exception:  # noqa: BLE001 - the others must still be closed
+                pass
+        self._append = None
 
     def result(self, out: _Outcome, pacer: Pacer | None) -> RunResult:
         plan, n = self.plan, out.cycles
@@ -393,16 +443,15 @@ class Recording:
                       "missed_fraction": format_value(pacer.missed / n),
                       "worst_late_ms": format_value(pacer.worst_late * 1e3)}
         traces = {}
+        paths: dict[str, Path] = {}
+        errors: dict[str, str] = {}
         for i, ch in enumerate(plan.channels):
             cols = {"time_s": plan.t[:n], "ref_m": np.asarray(plan.refs[i][0][:n]),
                     **{k: v[:n] for k, v in self._cols[i].items()}}
-            cols = {k: cols[k] for k in ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")}
+            cols = {k: cols[k] for k in self.COLUMNS}
+            head = self._head[i]
             meta = {
-                "axis": ch.axis.name,
-                "effort_unit": ch.axis.effort_unit,
-                "dt_s": format_value(plan.dt),
-                **{k: format_value(v) for k, v in ch.controller.describe().items()},
-                **{k: format_value(v) for k, v in ch.meta.items()},
+                **head,
                 "cycles": str(n),
                 "stop": out.stop.value,
                 **pacing,
@@ -420,8 +469,13 @@ class Recording:
                 after = out.fault.safe_after.get(name)
                 meta["safe_after_cycles"] = "unknown" if after is None else str(after)
             traces[ch.axis.name] = Trace(cols, meta)
+            if self.writers:
+                try:
+                    paths[ch.axis.name] = self.writers[i].close({k: v for k, v in meta.items() if k not in head})
+                except Exception as exc:  # noqa: BLE001 - a write error must not lose the run's result
+                    errors[ch.axis.name] = str(exc)
         return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
-                         out.fault, out.started)
+                         out.fault, out.started, paths, errors)
 
 
 def _disable_all(channels: Sequence[Channel]) -> None:

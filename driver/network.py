@@ -13,8 +13,6 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import socket
-import threading
 import time
 from typing import Any
 
@@ -22,13 +20,14 @@ import can
 import canopen
 
 from drivectl.driver.axis import AxisConfigError
+from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
 
 #: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
 SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
 #: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
 INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
 #: keys a [bus.options] table may not set: they have keys of their own in [bus]
-RESERVED_OPTIONS = frozenset({"interface", "channel", "bitrate", "host", "port", "can_filters", "bustype", "context"})
+RESERVED_OPTIONS = frozenset({"interface", "bustype", "channel", "bitrate", "host", "port", "can_filters"})
 
 _channel_counter = itertools.count()
 
@@ -63,7 +62,7 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
         kwargs.setdefault("tcp_tune", True)  # TCP_NODELAY + QUICKACK: else Nagle and delayed ACKs cost ~40 ms a cycle
         host, port = kwargs.get("host", "127.0.0.1"), kwargs.get("port", 29536)
         where = f"bus socketcand {host}:{port} ({channel})"
-        _probe_socketcand(where, host, port)
+        probe_socketcand(where, host, port, BusOpenError)
     with _CanLogCapture() as captured:
         try:
             bus = _construct(interface, channel, kwargs)
@@ -75,55 +74,9 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
 
 
 def _construct(interface: str, channel: str | int, kwargs: dict[str, Any]) -> can.BusABC:
-    if interface != "socketcand":
-        return can.Bus(interface=interface, channel=channel, **kwargs)
-    # python-can's socketcand client reads its handshake with blocking recv()s on a socket without a
-    # timeout: a server that accepts and then says nothing would hang us for ever. Its socket is created
-    # inside the constructor, so the default timeout is set around it, then the socket is made blocking
-    # again (the receive path selects with its own timeout).
-    with _DEFAULT_TIMEOUT_LOCK:
-        before = socket.getdefaulttimeout()
-        socket.setdefaulttimeout(SOCKETCAND_HANDSHAKE_S)
-        try:
-            bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        finally:
-            socket.setdefaulttimeout(before)
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
-    if isinstance(sock, socket.socket):
-        sock.settimeout(None)
-    return bus
-
-
-#: seconds a socketcand server has to accept and greet, and to finish the handshake
-SOCKETCAND_HANDSHAKE_S = 3.0
-_DEFAULT_TIMEOUT_LOCK = threading.Lock()
-
-
-def _probe_socketcand(where: str, host: str, port: int) -> None:
-    """Check that a socketcand server listens and greets before python-can's client tries: when nothing
-    listens, that client retries connect() in a busy loop for 10 s logging one warning per attempt
-    (~880 000 lines). One connection, one ``< hi >`` read with a deadline, then closed."""
-    try:
-        with socket.create_connection((host, port), timeout=SOCKETCAND_HANDSHAKE_S) as probe:
-            greeting = b""
-            deadline = time.monotonic() + SOCKETCAND_HANDSHAKE_S
-            while not greeting.endswith(b">") and len(greeting) < 64:
-                probe.settimeout(max(0.001, deadline - time.monotonic()))
-                chunk = probe.recv(64)
-                if not chunk:
-                    break
-                greeting += chunk
-    except ConnectionRefusedError:
-        raise BusOpenError(f"{where}: cannot open: nothing listens there (connection refused); start the "
-                           f"emulator (drivectl emulate --socketcand {port}) or socketcand first") from None
-    except TimeoutError:
-        raise BusOpenError(f"{where}: cannot open: no socketcand greeting within {SOCKETCAND_HANDSHAKE_S:g} s") \
-            from None
-    except OSError as exc:
-        raise BusOpenError(f"{where}: cannot open: {exc.strerror or exc}") from None
-    if greeting.strip() != b"< hi >":
-        text = greeting.decode("ascii", "replace").strip() or "the connection closed"
-        raise BusOpenError(f"{where}: cannot open: not a socketcand server (it said {text!r}, expected '< hi >')")
+    if interface == "socketcand":
+        return SocketcandClientBus.connect(channel, **kwargs)
+    return can.Bus(interface=interface, channel=channel, **kwargs)
 
 
 class _CanLogCapture(logging.Handler):
@@ -276,6 +229,7 @@ class BusLog(can.Listener):
         except ValueError as exc:
             raise ValueError(f"--bus-log {path}: {exc}") from None
         self.path = path
+        self._stopped = False
 
     def on_message_received(self, msg: can.Message) -> None:
         self.logger.on_message_received(can.Message(
@@ -289,7 +243,9 @@ class BusLog(can.Listener):
         self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
 
     def stop(self) -> None:
-        self.logger.stop()
+        if not self._stopped:  # the notifier stops its listeners and close_threaded does too
+            self._stopped = True
+            self.logger.stop()
 
 
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:

@@ -115,7 +115,13 @@ def test_a_trace_lost_after_the_run_is_one_line_and_exit_1(tmp_path, capsys, mon
         raise trace_stream.TraceWriteError(f"{folder}/x-1.csv.partial: trace incomplete: No space left on device "
                                            "after 0 rows; the rows written before are kept")
 
+    def stream_full(self, trailer=None, *, complete=True):
+        self.abandon()
+        raise trace_stream.TraceWriteError(f"{self.partial}: trace incomplete: No space left on device")
+
     monkeypatch.setattr(trace_stream, "write_trace", full)
+    # the run streams its trace (servo.Recording): the disk fills under the stream, then the rewrite fails too
+    monkeypatch.setattr(trace_stream.TraceWriter, "close", stream_full)
     rc = main([*SIM, "--out", str(tmp_path / "out")])
     cap = capsys.readouterr()
     assert rc == 1

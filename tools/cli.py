@@ -60,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(t)
     t.add_argument("--sim", action="store_true",
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -82,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.shell import add_shell_parser
+
+    add_shell_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -156,6 +162,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "shell":
+            from drivectl.tools.shell import cmd_shell
+
+            return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:
@@ -267,8 +277,22 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
-        result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
-                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request)
+        from drivectl.controllers.servo import plan_run
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        # an axis away from its profile's start is moved there first, shown and agreed (tools/approach.py)
+        approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
+        if approach is not None:
+            consent(args.approach, moves)
+        plan = plan_run(channels, args.duration)  # before the approach: the run follows it within a cycle
+        result = None
+        if approach is not None:
+            result = run_channels(approach, disable_at_end=False, pace=args.paced, stop_request=request)
+        if result is None or result.ok:
+            # the traces stream to --out as the run goes (a killed run leaves its .partial files)
+            result = run_channels(plan, on_start=started, pace=args.paced,
+                                  progress=not args.quiet and sys.stderr.isatty(), stop_request=request,
+                                  stream=Path(args.out))
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
@@ -279,8 +303,11 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     clean_stale(out)
     written = []
     unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
-    for tr in result.traces.values():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
-        try:
+    for name, tr in result.traces.items():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
+        if name in result.paths:  # streamed during the run
+            written.append(result.paths[name])
+            continue
+        try:  # the stream failed (disk full, folder gone): once more, whole
             written.append(write_trace(out, tr))
         except (TraceWriteError, OSError) as exc:
             unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")

@@ -52,6 +52,9 @@ def add_commission_parsers(sub: Any) -> None:
     i.add_argument("--out", default="traces", metavar="DIR", help="where the identified model TOML goes")
     i.add_argument("--sim", action="store_true", help="SimAxis instead of the emulated drive on the bus")
     i.add_argument("--json", action="store_true")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(i)
     i.add_argument("--write-config", nargs="?", const="", metavar="FILE",
                    help="also point axes.AXIS.model at the identified model in FILE (default: the --config in "
                    "use), comments kept, the old file backed up as FILE.STAMP.bak")
@@ -232,9 +235,11 @@ IDENTIFY_KEYS = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_
 
 
 def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None = None, plant: str | None = None,
-                  noise: float = 0.0) -> dict[str, Any]:
+                  noise: float = 0.0, approach: bool | None = None) -> dict[str, Any]:
     """Run the identification on axis ``name`` of ``cfg`` (emulated drive on the bus, or SimAxis);
-    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI."""
+    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI. An axis that is not
+    at the identification profile's start is moved there first (tools/approach.py; ``approach``: the
+    ``--approach`` / ``--no-approach`` choice)."""
     from drivectl.controllers.pid import PidDob
     from drivectl.tools.identify import identify_rigid
     from drivectl.tools.machine import model_specs, open_machine, plant_specs
@@ -250,7 +255,23 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None =
     def axis_factory(start: float):
         m = open_machine(cfg, [name], sim=sim, start={name: start}, plant=plant, noise=noise)
         machines.append(m)
+        _approach(m.axes[name], start)
         return m.axes[name]
+
+    def _approach(axis: Any, start: float) -> None:
+        from drivectl.controllers.servo import Channel, LimitError, run_channels
+        from drivectl.profiles.dwell import Dwell
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        ac = cfg.axis(name)
+        ch = Channel(axis, controller_factory(cfg.cycle_s), Dwell(start, 1.0), ac.limits, {})
+        plan, moves = plan_approach([ch], where_axes_stand([ch]), {name: ac.motion})
+        if plan is None:
+            return
+        consent(approach, moves)
+        res = run_channels(plan)  # ends disabled: the identification enables it again
+        if not res.ok:
+            raise LimitError(f"axis {name}: the approach to {start * 1e3:.3f} mm stopped: {res.detail}")
 
     def controller_factory(dt: float):
         # the loop's nominal mass is a rough guess on purpose: the result does not depend on it
@@ -288,7 +309,8 @@ def cmd_identify(args: argparse.Namespace) -> int:
         return cmd_identify_two_mass(args, cfg, believed, plants[args.axis], _merge_plant)
     t0 = time.perf_counter()
     result = identify_axis(cfg, args.axis, sim=args.sim, model=getattr(args, "model", None),
-                           plant=getattr(args, "plant", None), noise=getattr(args, "noise", 0.0))
+                           plant=getattr(args, "plant", None), noise=getattr(args, "noise", 0.0),
+                           approach=getattr(args, "approach", None))
     keys = IDENTIFY_KEYS
     model = result["spec"]
     ident = result["identified"]

@@ -268,6 +268,7 @@ class ServoLoop:
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
         self.faults: list[Fault] = []
+        self.command_errors: list[str] = []  # commands that raised in the loop (kept for status)
         self.fault_files: list[Path] = []
         self._thread: threading.Thread | None = None
         self._watchdog: threading.Thread | None = None
@@ -323,6 +324,8 @@ class ServoLoop:
             self.flush()
             if self.gc_control and self.clock == "wall":
                 gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            for rt in self._rts:
+                rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
                 if self._gc_was_enabled:
                     gc.enable()
         for rt in self._rts:
@@ -375,7 +378,11 @@ class ServoLoop:
         inbox = self._inbox
         with self.io_lock:
             while inbox:
-                inbox.popleft()()
+                fn = inbox.popleft()
+                try:
+                    fn()
+                except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
+                    self.command_errors.append(f"{type(exc).__name__}: {exc}")
             k = self.cycle
             try:
                 for rt in self._rts:
@@ -385,7 +392,17 @@ class ServoLoop:
                         self._idle(rt, k)
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
+            except AxisError as exc:  # a write that failed (bus error): a fault like any other
+                self._fault(Fault(exc.kind.value if exc.kind else "axis error", self._axis_named(exc), k, str(exc)),
+                            StopReason.FAULT)
+            except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
+                self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
+                                  f"{exc}"), StopReason.FAULT)
             self.cycle = k + 1
+
+    def _axis_named(self, exc: Exception) -> str:
+        text = str(exc)
+        return next((rt.name for rt in self._rts if text.startswith(f"axis {rt.name}:")), self._rts[0].name)
 
     def _servo(self, rt: AxisRuntime, k: int) -> None:
         """One cycle of an enabled axis: sample -> reference -> control -> record -> limits -> write."""
@@ -517,10 +534,19 @@ class ServoLoop:
     # -- faults and stops -----------------------------------------------------------------------------------
     def _fault(self, fault: Fault, stop: StopReason) -> None:
         """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
+        why = f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}"
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
+            if not rt.ring.count:
+                continue
             last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
-            for cap in [c for c in rt.captures if c.trigger.kind == "fault"]:
-                cap.complete(rt.ring, last, f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}")
+            armed = [c for c in rt.captures if c.trigger.kind == "fault"]
+            if not armed and self.fault_dir is not None:
+                # nobody asked, and the last seconds go to disk all the same: the whole ring
+                armed = [Capture(rt.name, CHANNELS, Trigger("fault"), min(rt.ring.count, rt.ring.size) - 1, 0,
+                                 self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
+                rt.captures.extend(armed)
+            for cap in armed:
+                cap.complete(rt.ring, last, why)
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:
@@ -668,6 +694,7 @@ class ServoLoop:
             "gc_worst_ms": self.gc_worst * 1e3,
             "granted": dict(self.granted),
             "faults": len(self.faults),
+            "command_errors": len(self.command_errors),
             "axes": {},
         }
         for rt in self._rts:

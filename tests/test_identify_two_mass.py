@@ -68,3 +68,15 @@ def test_identify_z_prints_the_table(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "total_mass" in text and "mode_hz" in text and "+-1 sigma" in text
     assert (tmp_path / "z-identified.toml").exists()
+
+
+def test_friction_runs_on_two_mass_average_whole_disturbance_periods(tmp_path, capsys):
+    """--friction: constant-velocity runs; their mean effort over whole periods of the model's 0.5 Hz
+    disturbance gives the viscous friction b1 + b2 (1.611 V s/m) and no Coulomb level."""
+    assert main(["identify", "--axis", "z", "--sim", "--friction", "--seconds", "4", "--out", str(tmp_path),
+                 "--json"]) == 0
+    fr = json.loads(capsys.readouterr().out)["friction"]
+    b = load_plant("two-mass").params
+    for tag in ("pos", "neg"):
+        assert fr[f"c_{tag}"] == pytest.approx(b["b1"] + b["b2"], rel=0.02)
+        assert abs(fr[f"fc_{tag}"]) < 0.005  # V

@@ -201,7 +201,7 @@ def test_capture_around_an_injected_fault_and_the_fault_ring_on_disk(tmp_path):
         assert len(tr) == 201 and tr.time[-1] == 0.0
         assert tr.ref[-1] > 0 and "drive fault" in tr.meta["capture_detail"]
         files = m.loop.flush()
-        assert len(files) == 1 and files[0].name.startswith("x-fault-")
+        assert len(files) == 1 and files[0].name.startswith("x-fault-")  # the armed capture, on disk
         assert len(Trace.read(files[0])) == 201
         with pytest.raises(AxisError, match="fault_reset first"):
             x.enable()
@@ -391,3 +391,36 @@ def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
     finally:
         loop.close()
     assert axis.power is PowerState.SWITCH_ON_DISABLED
+
+
+def test_a_controller_that_raises_stops_every_axis_instead_of_killing_the_loop(machine):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(0.01)
+    machine.advance(0.05)
+
+    def broken(ref, fb):
+        raise FloatingPointError("nan in the state")
+
+    machine.loop.axes["x"].ch.controller.step = broken
+    with pytest.raises(MotionFault, match="FloatingPointError"):
+        h.wait(1)
+    assert x.state == "off" and x.power in (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE)
+    machine.advance(0.05)  # the loop goes on cycling the (disabled) axis
+    assert machine.status()["faults"] == 1
+
+
+def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
+    with drivectl.connect(config(), axes=["x", "y"], fault_dir=tmp_path, faults=["y/emcy-fault@0.4"],
+                          ring_s=0.25) as m:
+        for ax in m.axes.values():
+            ax.enable()
+        h = m.axes["x"].move_to(0.02)
+        with pytest.raises(MotionFault):
+            h.wait(2)
+        files = sorted(m.loop.flush())
+    assert [f.name.split("-fault-")[0] for f in files] == ["x", "y"]  # every axis, the ring's last 0.25 s
+    tr = Trace.read(files[0])
+    assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
+    assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
+    assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)

@@ -63,6 +63,9 @@ def add_commission_parsers(sub: Any) -> None:
     i.add_argument("--plant", metavar="NAME|FILE", help="what the emulated drive plays (default: the axis's plant)")
     i.add_argument("--seconds", type=float, default=20.0,
                    help="two-mass: length of the multisine excitation, s (default 20)")
+    i.add_argument("--friction", action="store_true",
+                   help="two-mass: also constant-velocity runs for the friction (made anyway when the model has "
+                   "Coulomb friction)")
     i.add_argument("--noise", type=float, default=0.0, metavar="EFFORT",
                    help="emulated drive: force noise std on the plant, effort unit (default 0)")
 

@@ -210,6 +210,59 @@ def identify_two_mass(cfg: Any, name: str, prior: PlantSpec, *, sim: bool = Fals
     return fit, res
 
 
+#: constant speeds of the friction runs on a two-mass axis, m/s (each way, over 80 % of the soft limits)
+FRICTION_SPEEDS = (0.005, 0.01, 0.02, 0.04)
+
+
+def friction_runs(cfg: Any, name: str, prior: PlantSpec, *, sim: bool = False, plant: str | None = None,
+                  noise: float = 0.0) -> dict[str, float]:
+    """Constant-velocity runs under the axis's controller (on ``prior``) across its soft limits, both
+    ways, at :data:`FRICTION_SPEEDS`: per direction, Coulomb level and viscous slope of the mean effort
+    against the speed (tools/identify.py, ``fit_friction``): fc_pos, c_pos, fc_neg, c_neg."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.tools.identify import fit_friction, friction_points, identification_profile, record_run
+    from drivectl.tools.machine import open_machine
+
+    ac = cfg.axis(name)
+    lo, hi = ac.limits.position if ac.limits.position is not None else (-0.05, 0.05)
+    center, half = 0.5 * (lo + hi), 0.4 * (hi - lo)
+    speeds = tuple(v for v in FRICTION_SPEEDS if 2 * half / v >= 0.6) or (FRICTION_SPEEDS[0],)
+    profile = identification_profile(center, half, speeds, amax=1.0, jmax=40.0)
+    ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=prior, axis=name,
+                           source=f"{cfg.source}: axes.{name}.controller_settings")
+    with open_machine(cfg, [name], sim=sim, plant=plant, noise=noise, start={name: profile.start_position}) as m:
+        trace = record_run(m.axes[name], ctrl, profile, ac.limits)
+    period = 1.0 / prior.params["disturbance_frequency"] if prior.params.get("disturbance_frequency") else 0.0
+    return fit_friction(_whole_periods(trace, period) if period > 0 else friction_points([trace]))
+
+
+def _whole_periods(trace: Any, period: float) -> list[Any]:
+    """The settled constant-velocity stretches, each cut to a whole number of the model's disturbance
+    periods (paper 000's d = 0.1 sin(pi t) is 0.1 V: at 10 mm/s it is six times the viscous force, and
+    averages out only over whole periods); stretches shorter than one period are dropped."""
+    from drivectl.tools.identify import FrictionPoint, _runs, _velocity
+
+    dt = trace.dt
+    v_ref = np.gradient(trace.ref, dt)
+    steady = (np.abs(v_ref) >= 1e-3) & (np.abs(np.gradient(v_ref)) <= 1e-3 * np.abs(v_ref) + 1e-9)
+    v = _velocity(trace)
+    n_period = int(round(period / dt))
+    skip = int(round(0.25 / dt))
+    points = []
+    for i0, i1 in _runs(steady):
+        i0 += skip
+        whole = (i1 - i0) // n_period * n_period
+        if whole <= 0:
+            continue
+        sl = slice(i0, i0 + whole)
+        points.append(FrictionPoint(float(v[sl].mean()), float(trace.effort[sl].mean()), float("nan"), whole))
+    return points
+
+
+def _has_coulomb(spec: PlantSpec) -> bool:
+    return any(b.has_coulomb for b in spec.design().bodies)
+
+
 def cmd_identify_two_mass(args: Any, cfg: Any, prior: PlantSpec, plant: PlantSpec, merge: Any) -> int:
     """``drivectl identify --axis z``: the table, the model TOML, ``--json``, ``--write-config``."""
     import json
@@ -224,11 +277,27 @@ def cmd_identify_two_mass(args: Any, cfg: Any, prior: PlantSpec, plant: PlantSpe
     fit, res = identify_two_mass(cfg, args.axis, prior, sim=args.sim, model=getattr(args, "model", None),
                                  plant=getattr(args, "plant", None), seconds=args.seconds,
                                  noise=getattr(args, "noise", 0.0))
+    friction = None
+    if getattr(args, "friction", False) or _has_coulomb(prior):  # the axis has friction to measure
+        friction = friction_runs(cfg, args.axis, prior, sim=args.sim, plant=getattr(args, "plant", None),
+                                 noise=getattr(args, "noise", 0.0))
     seconds = time.perf_counter() - t0
     path = Path(args.out) / f"{args.axis}-identified.toml"
     # effects that change the dynamics were not fitted (the fit is of the base model): not carried over
     kept = tuple(e for e in prior.effects if e[0] not in LINEAR_EFFECTS)
+    from drivectl.plant_emulator.effects import EFFECTS
+
+    friction_note = ""
+    if friction is not None:
+        levels = {"force_pos": max(friction["fc_pos"], 0.0), "force_neg": max(friction["fc_neg"], 0.0)}
+        if "coulomb" in EFFECTS:
+            kept = tuple(e for e in kept if e[0] != "coulomb") + (("coulomb", levels),)
+            friction_note = "written as a coulomb effect"
+        else:
+            friction_note = "not written: this version's effects have no coulomb term for a two-mass model"
     spec = fit.spec(replace(prior, effects=kept), f"{args.axis}-identified")
+    if friction is not None:
+        spec.identified["friction_runs"] = dict(friction)
     where = "SimAxis" if args.sim else cfg.bus.interface
     atomic_write_text(path, spec.to_toml(
         f"identified by drivectl identify --axis {args.axis} on {where}: closed-loop FRF (multisine "
@@ -249,6 +318,8 @@ def cmd_identify_two_mass(args: Any, cfg: Any, prior: PlantSpec, plant: PlantSpe
                "model": {k: model_vals[k] for k in REPORTED},
                "rel_err": {k: fit.value(k) / model_vals[k] - 1.0 for k in REPORTED},
                "plant_file": str(path), "seconds": seconds, "lines": fit.lines}
+        if friction is not None:
+            out["friction"] = dict(friction)
         if truth is not None:
             out["plant"] = {k: truth[k] for k in REPORTED}
             out["plant_rel_err"] = {k: fit.value(k) / truth[k] - 1.0 for k in REPORTED}
@@ -272,7 +343,14 @@ def cmd_identify_two_mass(args: Any, cfg: Any, prior: PlantSpec, plant: PlantSpe
         print(f"poorly identifiable (1-sigma > {100 * POORLY_IDENTIFIED:g} %): {', '.join(fit.poorly)}: from effort to "
               "table position the split of the mass between screw and table barely shows; a design should lean on "
               "total_mass and mode_hz ([identified] in the file)", file=sys.stdout)
-    print(f"friction: {prior.name} has viscous friction only (b2 fitted, b1 held); no constant-velocity runs")
+    if friction is None:
+        print(f"friction: {prior.name} has viscous friction only (b2 fitted, b1 held); no constant-velocity runs "
+              "(--friction makes them)")
+    else:
+        print(f"friction (constant-velocity runs, {', '.join(f'{1e3 * v:g}' for v in FRICTION_SPEEDS)} mm/s both "
+              f"ways): fc+ {friction['fc_pos']:.4g} {u}, c+ {friction['c_pos']:.4g} {u} s/m, fc- "
+              f"{friction['fc_neg']:.4g} {u}, c- {friction['c_neg']:.4g} {u} s/m ({friction_note}; the FRF's "
+              f"b1 + b2 = {fit.params['b1'] + fit.params['b2']:.4g} {u} s/m)")
     print(f"wrote {path}   (loads with --model {path})")
     if merged:
         print(merged)

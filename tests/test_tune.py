@@ -21,6 +21,14 @@ def _embedded_config(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("DRIVECTL_CONFIG", raising=False)
 
 
+def _paper_z():
+    """The machine with z under paper 000's PID-NFTSM and its delay-tuned settings (the embedded comment)."""
+    cfg = load_config()
+    z = dataclasses.replace(cfg.axis("z"), controller="pid-nftsm",
+                            controller_settings={"m_tilde": 0.15, "accel_filter_hz": 150.0})
+    return dataclasses.replace(cfg, axes={**cfg.axes, "z": z})
+
+
 def _in_declared_range(controller: str, gains: dict[str, float]) -> None:
     meta = {f.name: f.metadata for f in dataclasses.fields(controller_class(controller).SettingsClass)}
     for k, v in gains.items():
@@ -65,8 +73,7 @@ def test_search_x_pool_and_verify_on_sim() -> None:
 
 def test_search_z_batch() -> None:
     """two-mass is linear: the whole sample runs as one numpy batch, ranked like SimAxis."""
-    res = tune(load_config(), "z", controller="pid-nftsm", candidates=16, seconds=1.0, seed=0, verify=False,
-               corners=0)
+    res = tune(_paper_z(), "z", candidates=16, seconds=1.0, seed=0, verify=False, corners=0)
     _check_search(res, 16)
     assert "batch" in res.method and res.measured is None
     # the batch's figure for the best agrees with the servo loop on SimAxis (bring-up cycles shift the
@@ -110,7 +117,7 @@ def test_cli_no_verify_reports(tmp_path, capsys) -> None:
 
 def test_verify_on_emulated_bus_matches_prediction() -> None:
     """The default verification: the emulated CiA 402 drive on the virtual bus, whose plant is the model."""
-    res = tune(load_config(), "z", controller="pid-nftsm", candidates=4, seconds=0.5, verify=True, corners=0)
+    res = tune(_paper_z(), "z", candidates=4, seconds=0.5, verify=True, corners=0)
     assert res.measured is not None and res.measured.ok
     assert "virtual" in res.verified_on
     assert res.measured.cost == pytest.approx(res.predicted.cost, rel=1e-6)
@@ -119,8 +126,7 @@ def test_verify_on_emulated_bus_matches_prediction() -> None:
 def test_robust_search_rejects_candidates_unstable_on_a_corner() -> None:
     """Scored on the model and 8 of its +-10 % corners: PID-NFTSM gains that only the nominal model
     carries are rejected, and the best is never worse than the start on the same worst-case score."""
-    res = tune(load_config(), "z", controller="pid-nftsm", candidates=8, seconds=1.0, seed=0, verify=False,
-               corners=8)
+    res = tune(_paper_z(), "z", candidates=8, seconds=1.0, seed=0, verify=False, corners=8)
     assert res.corners == 8 and res.unstable >= 1
     assert np.isinf(res.costs).sum() >= res.unstable
     assert float(np.min(res.costs)) <= res.costs[0]

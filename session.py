@@ -264,11 +264,13 @@ class AxisControl:
         self._m.loop.submit(go)
         return handle
 
-    def run(self, profile: Profile, *, relative: bool = False, approach: bool = False) -> Move:
+    def run(self, profile: Profile, *, relative: bool = False, approach: bool = False,
+            record: str | Path | None = None) -> Move:
         """Run ``profile`` (any profile: library, file, object). Absolute: the axis must stand at its
         start (``approach=True`` moves it there first); ``relative=True``: the profile is shifted to
         start where the axis stands. Refused with one line when it would leave the soft limits. The
-        handle's ``trace`` is the run's record (trace v1) once it ended."""
+        handle's ``trace`` is the run's record (trace v1) once it ended; ``record=folder`` also streams
+        it there as it goes (tools/trace_stream.py; the handle's ``path`` once ``wait()`` returned)."""
         self._require_enabled("run")
         rt, loop = self._rt, self._m.loop
         n = check_run_length(profile.duration, loop.dt, f"profile {profile_name(profile)}: duration")
@@ -287,6 +289,13 @@ class AxisControl:
                 raise LimitError(f"axis {self.name}: run {profile_name(profile)}: spans [{lo:.6f}, {hi:.6f}] m, "
                                  f"outside the soft limits [{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; "
                                  "nothing moved")
+        m = rt.motion  # a profile is not generated here, but it moves the axis: the same bounds hold
+        for what, arr, bound, key in (("velocity", samples[1], m.max_velocity, "max_velocity_m_s"),
+                                      ("acceleration", samples[2], m.max_acceleration, "max_acceleration_m_s2")):
+            peak = float(np.max(np.abs(arr))) if len(arr) else 0.0
+            if peak > bound * (1 + 1e-9) + 1e-12:
+                raise LimitError(f"axis {self.name}: run {profile_name(profile)}: {what} {peak:g} exceeds the axis's "
+                                 f"{key} {bound:g} ([axes.{self.name}.motion]); nothing moved")
         far = abs(start + offset - here) > 1e-6
         if far and not approach:
             raise LimitError(f"axis {self.name}: run {profile_name(profile)}: the axis stands at {here:.6f} m, the "
@@ -297,6 +306,17 @@ class AxisControl:
         name = profile_name(profile)
         handle = Move(loop, self.name, "run", float(samples[0][-1]))
         meta = {"profile": name, "relative_offset_m": format_value(offset)}
+        if record is not None:
+            from drivectl.tools.trace_stream import TraceWriter
+
+            ax = rt.ch.axis
+            head = {"axis": self.name, "effort_unit": ax.effort_unit, "dt_s": format_value(loop.dt),
+                    **{k: format_value(v) for k, v in rt.ch.controller.describe().items()}, **meta,
+                    "bus": self._m.bus, "clock": loop.clock}
+            handle._writer = TraceWriter(record, self.name, columns=("time_s", "ref_m", "pos_m", "effort", "vel_m_s"),
+                                         meta=head).start()
+            run.append = handle._writer.append
+            self._m._streamed.append(handle)
 
         def begin() -> None:
             if rt.state is not AxisState.SERVO:
@@ -407,6 +427,7 @@ class Machine:
         self._closed = False
         self._lockstep_bus = all(getattr(a, "lockstep", True) for a in hardware.axes.values())
         loop.wait_until = self.run_until
+        self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
 
     def _bus(self, fn: Any, *args: Any) -> Any:
         # the in-process bus delivers frames on the sending thread: one thread on it at a time
@@ -471,6 +492,8 @@ class Machine:
             states = self.loop.close()
         finally:
             self.hardware.close()
+            for h in self._streamed:
+                h._close_record()  # a run cut short by the close: its record ends here, trailer and all
         return states
 
     def __enter__(self) -> Machine:

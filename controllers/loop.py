@@ -108,6 +108,9 @@ class Move:
         self._run: ProfileRun | None = None  # a run's record, once it ended
         self._trace_fn: Callable[[Move], Any] | None = None
         self._trace: Any = None
+        self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
+        self.path: Path | None = None  # where a streamed run's trace was written
+        self.record_error = ""
         #: what the loop starts when this ends done (a run after its approach move)
         self._then: Callable[[], None] | None = None
         self._done = threading.Event()
@@ -140,9 +143,25 @@ class Move:
         TimeoutError when it has not ended within ``timeout``."""
         if not self.loop.wait_until(self._done.is_set, timeout):
             raise TimeoutError(f"axis {self.axis}: {self.kind} not done within {timeout:g} s (status {self.status})")
+        self._close_record()
         if self.status == "fault":
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
         return self
+
+    def _close_record(self) -> None:
+        """A streamed run's file: closed (trailer, rename) on the waiting side, never in the cycle."""
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return
+        trailer = {"stop": self.status, "cycles": str(self._run.k if self._run else 0)}
+        if self.detail:
+            trailer["stop_detail"] = self.detail
+        if self.fault is not None:
+            trailer.update(self.fault.meta())
+        try:
+            self.path = writer.close(trailer)
+        except Exception as exc:  # noqa: BLE001 - the run's end is reported all the same
+            self.record_error = str(exc)
 
     def __repr__(self) -> str:
         where = f" at {self.position * 1e3:.6f} mm" if self.position is not None else ""
@@ -157,6 +176,11 @@ class ProfileRun:
     n: int
     k: int = 0
     rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
+    #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
+    append: Callable[..., None] | None = None
+
+    def __post_init__(self) -> None:
+        self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
 
     def next(self) -> Reference:
         k = self.k if self.k < self.n else self.n - 1
@@ -244,10 +268,12 @@ class ServoLoop:
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
         self.faults: list[Fault] = []
+        self.command_errors: list[str] = []  # commands that raised in the loop (kept for status)
         self.fault_files: list[Path] = []
         self._thread: threading.Thread | None = None
         self._watchdog: threading.Thread | None = None
         self._closing = False
+        self._closed = threading.Event()
         self._last_cycle_t: float | None = None
         self._stalled = False
         self._writer: threading.Thread | None = None
@@ -286,6 +312,7 @@ class ServoLoop:
                                timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
         finally:
             self._closing = True
+            self._closed.set()
             if self._thread is not None:
                 self._thread.join(timeout)
             if self._watchdog is not None:
@@ -297,6 +324,8 @@ class ServoLoop:
             self.flush()
             if self.gc_control and self.clock == "wall":
                 gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            for rt in self._rts:
+                rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
                 if self._gc_was_enabled:
                     gc.enable()
         for rt in self._rts:
@@ -349,7 +378,11 @@ class ServoLoop:
         inbox = self._inbox
         with self.io_lock:
             while inbox:
-                inbox.popleft()()
+                fn = inbox.popleft()
+                try:
+                    fn()
+                except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
+                    self.command_errors.append(f"{type(exc).__name__}: {exc}")
             k = self.cycle
             try:
                 for rt in self._rts:
@@ -359,7 +392,17 @@ class ServoLoop:
                         self._idle(rt, k)
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
+            except AxisError as exc:  # a write that failed (bus error): a fault like any other
+                self._fault(Fault(exc.kind.value if exc.kind else "axis error", self._axis_named(exc), k, str(exc)),
+                            StopReason.FAULT)
+            except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
+                self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
+                                  f"{exc}"), StopReason.FAULT)
             self.cycle = k + 1
+
+    def _axis_named(self, exc: Exception) -> str:
+        text = str(exc)
+        return next((rt.name for rt in self._rts if text.startswith(f"axis {rt.name}:")), self._rts[0].name)
 
     def _servo(self, rt: AxisRuntime, k: int) -> None:
         """One cycle of an enabled axis: sample -> reference -> control -> record -> limits -> write."""
@@ -384,9 +427,14 @@ class ServoLoop:
         rt.ring.push(k, ref.position, pos, u, fb.velocity, getattr(ax, "torque_actual", math.nan),
                      getattr(ax, "statusword", 0))
         if run is not None and run.k < run.n:
-            r = run.rec
-            r[0, run.k], r[1, run.k], r[2, run.k] = pos, fb.velocity, u
-            run.k += 1
+            i = run.k
+            r = run.rows
+            r[0][i] = pos
+            r[1][i] = fb.velocity
+            r[2][i] = u
+            if run.append is not None:
+                run.append(i * self.dt, ref.position, pos, u, fb.velocity)
+            run.k = i + 1
         if rt.captures:
             self._captures(rt, k)
         rt.move_started = False
@@ -486,10 +534,19 @@ class ServoLoop:
     # -- faults and stops -----------------------------------------------------------------------------------
     def _fault(self, fault: Fault, stop: StopReason) -> None:
         """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
+        why = f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}"
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
+            if not rt.ring.count:
+                continue
             last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
-            for cap in [c for c in rt.captures if c.trigger.kind == "fault"]:
-                cap.complete(rt.ring, last, f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}")
+            armed = [c for c in rt.captures if c.trigger.kind == "fault"]
+            if not armed and self.fault_dir is not None:
+                # nobody asked, and the last seconds go to disk all the same: the whole ring
+                armed = [Capture(rt.name, CHANNELS, Trigger("fault"), min(rt.ring.count, rt.ring.size) - 1, 0,
+                                 self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
+                rt.captures.extend(armed)
+            for cap in armed:
+                cap.complete(rt.ring, last, why)
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:
@@ -589,7 +646,9 @@ class ServoLoop:
         if slack < 0.5 * self.dt:
             return
         t0 = self._now()
-        gc.collect(1 if k % 10_000 == 0 else 0)
+        # young every 0.1 s, middle every 10 s, and what survived those once a minute (what a program
+        # beside the loop leaves in cycles, e.g. plotting, must not grow without bound)
+        gc.collect(2 if k % 60_000 == 0 else 1 if k % 10_000 == 0 else 0)
         took = self._now() - t0
         self.gc_runs += 1
         if took > self.gc_worst:
@@ -610,8 +669,7 @@ class ServoLoop:
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
-        while not self._closing:
-            time.sleep(self.stall_s / 2)
+        while not self._closed.wait(self.stall_s / 2):
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue
@@ -638,6 +696,7 @@ class ServoLoop:
             "gc_worst_ms": self.gc_worst * 1e3,
             "granted": dict(self.granted),
             "faults": len(self.faults),
+            "command_errors": len(self.command_errors),
             "axes": {},
         }
         for rt in self._rts:

@@ -134,6 +134,12 @@ class Trajectory:
         inp.target_acceleration = [0.0]
         self.arrived = False
 
+    def release(self) -> None:
+        """Drop the ruckig objects (the loop closed); the reference then holds where it is."""
+        self._moving = False
+        self.arrived = True
+        self._otg = self._in = self._out = None
+
     # -- one cycle ---------------------------------------------------------------------------------------
     def next(self) -> Reference:
         """The reference of the next cycle."""

@@ -13,8 +13,6 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import socket
-import threading
 import time
 from typing import Any
 
@@ -22,13 +20,17 @@ import can
 import canopen
 
 from drivectl.driver.axis import AxisConfigError
+from drivectl.driver.frame_guard import FrameGuard
+from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
+
+log = logging.getLogger("drivectl.frames")
 
 #: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
 SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
 #: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
 INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
 #: keys a [bus.options] table may not set: they have keys of their own in [bus]
-RESERVED_OPTIONS = frozenset({"interface", "channel", "bitrate", "host", "port", "can_filters", "bustype", "context"})
+RESERVED_OPTIONS = frozenset({"interface", "bustype", "channel", "bitrate", "host", "port", "can_filters"})
 
 _channel_counter = itertools.count()
 
@@ -63,7 +65,7 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
         kwargs.setdefault("tcp_tune", True)  # TCP_NODELAY + QUICKACK: else Nagle and delayed ACKs cost ~40 ms a cycle
         host, port = kwargs.get("host", "127.0.0.1"), kwargs.get("port", 29536)
         where = f"bus socketcand {host}:{port} ({channel})"
-        _probe_socketcand(where, host, port)
+        probe_socketcand(where, host, port, BusOpenError)
     with _CanLogCapture() as captured:
         try:
             bus = _construct(interface, channel, kwargs)
@@ -75,55 +77,9 @@ def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **k
 
 
 def _construct(interface: str, channel: str | int, kwargs: dict[str, Any]) -> can.BusABC:
-    if interface != "socketcand":
-        return can.Bus(interface=interface, channel=channel, **kwargs)
-    # python-can's socketcand client reads its handshake with blocking recv()s on a socket without a
-    # timeout: a server that accepts and then says nothing would hang us for ever. Its socket is created
-    # inside the constructor, so the default timeout is set around it, then the socket is made blocking
-    # again (the receive path selects with its own timeout).
-    with _DEFAULT_TIMEOUT_LOCK:
-        before = socket.getdefaulttimeout()
-        socket.setdefaulttimeout(SOCKETCAND_HANDSHAKE_S)
-        try:
-            bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        finally:
-            socket.setdefaulttimeout(before)
-    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
-    if isinstance(sock, socket.socket):
-        sock.settimeout(None)
-    return bus
-
-
-#: seconds a socketcand server has to accept and greet, and to finish the handshake
-SOCKETCAND_HANDSHAKE_S = 3.0
-_DEFAULT_TIMEOUT_LOCK = threading.Lock()
-
-
-def _probe_socketcand(where: str, host: str, port: int) -> None:
-    """Check that a socketcand server listens and greets before python-can's client tries: when nothing
-    listens, that client retries connect() in a busy loop for 10 s logging one warning per attempt
-    (~880 000 lines). One connection, one ``< hi >`` read with a deadline, then closed."""
-    try:
-        with socket.create_connection((host, port), timeout=SOCKETCAND_HANDSHAKE_S) as probe:
-            greeting = b""
-            deadline = time.monotonic() + SOCKETCAND_HANDSHAKE_S
-            while not greeting.endswith(b">") and len(greeting) < 64:
-                probe.settimeout(max(0.001, deadline - time.monotonic()))
-                chunk = probe.recv(64)
-                if not chunk:
-                    break
-                greeting += chunk
-    except ConnectionRefusedError:
-        raise BusOpenError(f"{where}: cannot open: nothing listens there (connection refused); start the "
-                           f"emulator (drivectl emulate --socketcand {port}) or socketcand first") from None
-    except TimeoutError:
-        raise BusOpenError(f"{where}: cannot open: no socketcand greeting within {SOCKETCAND_HANDSHAKE_S:g} s") \
-            from None
-    except OSError as exc:
-        raise BusOpenError(f"{where}: cannot open: {exc.strerror or exc}") from None
-    if greeting.strip() != b"< hi >":
-        text = greeting.decode("ascii", "replace").strip() or "the connection closed"
-        raise BusOpenError(f"{where}: cannot open: not a socketcand server (it said {text!r}, expected '< hi >')")
+    if interface == "socketcand":
+        return SocketcandClientBus.connect(channel, **kwargs)
+    return can.Bus(interface=interface, channel=channel, **kwargs)
 
 
 class _CanLogCapture(logging.Handler):
@@ -213,6 +169,9 @@ class LockstepNetwork(canopen.Network):
         self._recv = bus.recv
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
+        #: every received frame is checked before canopen's dispatch (driver/frame_guard.py)
+        self.frame_guard = FrameGuard()
+        self.handler_errors = 0
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
@@ -241,8 +200,13 @@ class LockstepNetwork(canopen.Network):
             got = True
             if log is not None:
                 log.on_message_received(msg)
-            if not msg.is_error_frame:
-                notify(msg.arbitration_id, msg.data, msg.timestamp)
+            if not msg.is_error_frame and self.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+                try:
+                    notify(msg.arbitration_id, msg.data, msg.timestamp)
+                except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
+                    # must not end the pump (in lockstep that would be the sender's cycle); counted, logged
+                    self.handler_errors += 1
+                    _log_handler_error(msg.arbitration_id, exc, self.handler_errors)
         return got
 
     def disconnect(self) -> None:
@@ -256,9 +220,34 @@ class LockstepNetwork(canopen.Network):
         self.bus = None
 
 
+class GuardedListener(canopen.network.MessageListener):
+    """canopen's MessageListener with the frame checks of driver/frame_guard.py before its dispatch."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            return
+        net = self.network
+        if net.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+            try:
+                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
+            except Exception as exc:  # noqa: BLE001 - the notifier thread must go on
+                net.handler_errors = getattr(net, "handler_errors", 0) + 1
+                _log_handler_error(msg.arbitration_id, exc, net.handler_errors)
+
+
+def _log_handler_error(can_id: int, exc: Exception, count: int) -> None:
+    if count == 1 or count % 1000 == 0:  # rate-limited: a flood of one bad frame is one line per 1000
+        log.warning("frame 0x%03X: its handler raised %s: %s (%d so far; frame dropped)", can_id,
+                    type(exc).__name__, exc, count)
+
+
 def threaded_network(bus: can.BusABC) -> canopen.Network:
-    """A canopen Network driven by a python-can Notifier (for buses that cross processes)."""
+    """A canopen Network driven by a python-can Notifier (for buses that cross processes); every frame
+    checked by a :class:`FrameGuard` before canopen's dispatch."""
     net = canopen.Network(bus)
+    net.frame_guard = FrameGuard()
+    net.handler_errors = 0
+    net.listeners = [GuardedListener(net)]
     net.NOTIFIER_CYCLE = 0.05  # teardown waits up to one cycle; canopen's default is 1 s
     net.notifier = can.Notifier(bus, net.listeners, net.NOTIFIER_CYCLE)
     return net
@@ -276,6 +265,7 @@ class BusLog(can.Listener):
         except ValueError as exc:
             raise ValueError(f"--bus-log {path}: {exc}") from None
         self.path = path
+        self._stopped = False
 
     def on_message_received(self, msg: can.Message) -> None:
         self.logger.on_message_received(can.Message(
@@ -289,7 +279,9 @@ class BusLog(can.Listener):
         self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
 
     def stop(self) -> None:
-        self.logger.stop()
+        if not self._stopped:  # the notifier stops its listeners and close_threaded does too
+            self._stopped = True
+            self.logger.stop()
 
 
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:

@@ -32,8 +32,9 @@ thread accepts, does the handshakes and reads; frames clients send are queued (b
   frames (counted in :attr:`overruns`, logged once per client), the others do not wait for it;
 * a connection that has not reached raw mode within ``handshake_timeout`` is told ``< error ... >`` and
   closed (an idle ``nc`` held the only slot for ever when one client was served at a time);
-* a client in raw mode that has neither sent nor taken a byte for ``idle_timeout`` seconds is closed
-  (None: never); a master on the emulated drives never idles that long (the drives' heartbeats);
+* a client in raw mode that took none of the frames waiting for it for ``idle_timeout`` seconds (its
+  kernel buffers full, then its own queue) is dead or hung: it is closed (None: never). A client on a
+  quiet bus is not idle in this sense and stays: a resident master between runs sends nothing for minutes;
 * at most ``max_clients`` connections at once; the next is told ``< error too many clients >``.
 
 Frames sent while no client is in raw mode are dropped, as a bus that nobody listens to would.
@@ -75,7 +76,7 @@ class _Client:
     hold_until: float | None = None  # monotonic deadline of the raw-mode hold-off, None when released
     held: list[bytes] = field(default_factory=list)
     closing: bool = False  # close once `out` is flushed (after an error answer)
-    active: float = 0.0  # monotonic time of the last byte received from it or taken by it
+    waiting_since: float | None = None  # monotonic time since when `out` waits and the client took none of it
     dropped: int = 0  # frames lost because it did not read
 
 
@@ -98,7 +99,7 @@ class SocketcandServerBus(ServedBus):
         raw_hold_off: float = 0.25,
         max_clients: int = 8,
         handshake_timeout: float = 5.0,
-        idle_timeout: float | None = 60.0,
+        idle_timeout: float | None = 30.0,
         can_filters: can.typechecking.CanFilters | None = None,
         **kwargs: Any,
     ) -> None:
@@ -210,16 +211,21 @@ class SocketcandServerBus(ServedBus):
                         "unaffected)", self.port, client.peer)
 
     def _flush_locked(self, client: _Client) -> None:
+        took = False
         while client.out:
             try:
                 n = client.sock.send(client.out)
             except (BlockingIOError, InterruptedError):
-                return
+                break
             except OSError:
                 client.out.clear()  # peer gone; the server thread sees the EOF/error on its next read
-                return
+                break
             del client.out[:n]
-            client.active = time.monotonic()
+            took = True
+        if not client.out:
+            client.waiting_since = None
+        elif took or client.waiting_since is None:
+            client.waiting_since = time.monotonic()  # the kernel's buffers are full: it is not reading now
 
     def _release_hold_locked(self, client: _Client) -> None:
         client.hold_until = None
@@ -253,8 +259,8 @@ class SocketcandServerBus(ServedBus):
             return client.since + 2 * self.handshake_timeout  # told an error and not reading it: dropped then
         if client.state != "raw":
             return client.since + self.handshake_timeout
-        times = [t for t in (client.hold_until,
-                             client.active + self.idle_timeout if self.idle_timeout else None) if t is not None]
+        stalled = client.waiting_since + self.idle_timeout if self.idle_timeout and client.waiting_since else None
+        times = [t for t in (client.hold_until, stalled) if t is not None]
         return min(times) if times else None
 
     def _serve_once(self) -> None:
@@ -303,8 +309,8 @@ class SocketcandServerBus(ServedBus):
                     continue
                 if client.hold_until is not None and now >= client.hold_until:
                     self._release_hold_locked(client)
-                if self.idle_timeout and now >= client.active + self.idle_timeout:
-                    self._drop_locked(client, f"idle for {self.idle_timeout:g} s")
+                if self.idle_timeout and client.waiting_since and now >= client.waiting_since + self.idle_timeout:
+                    self._drop_locked(client, f"took none of its frames for {self.idle_timeout:g} s")
 
     def _accept(self) -> None:
         try:
@@ -324,7 +330,7 @@ class SocketcandServerBus(ServedBus):
             sock.close()
             return
         now = time.monotonic()
-        client = _Client(sock=sock, peer=peer, since=now, active=now)
+        client = _Client(sock=sock, peer=peer, since=now)
         with self._lock:
             self._clients = [*self._clients, client]
         log.info("socketcand server :%d: client %s connected", self.port, peer)
@@ -361,7 +367,6 @@ class SocketcandServerBus(ServedBus):
             with self._lock:
                 self._drop_locked(client, why)
             return
-        client.active = time.monotonic()
         if client.closing:
             return  # told an error, closing: nothing it says counts any more
         if client.state == "raw" and client.hold_until is not None:

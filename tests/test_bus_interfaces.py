@@ -7,7 +7,9 @@ The CLI cases run the real entry point in-process; stderr must be exactly one ``
 
 from __future__ import annotations
 
+import re
 import socket
+import textwrap
 import threading
 from pathlib import Path
 from typing import Any
@@ -15,7 +17,7 @@ from typing import Any
 import can
 import pytest
 
-from drivectl.driver import network
+from drivectl.driver import network, socketcand_client
 from drivectl.driver.network import INTERFACES, BusOpenError, open_bus, unique_virtual_channel
 from drivectl.tools.cli import main
 from drivectl.tools.config import ConfigError, load_config
@@ -158,7 +160,7 @@ def test_missing_slcan_tty_is_one_line(tmp_path, capsys):
 def test_a_server_that_is_not_socketcand_is_one_line(monkeypatch, says, expected):
     """Something listens but does not greet (or greets wrongly): one line within the handshake bound, where
     python-can's client would block in recv() for ever."""
-    monkeypatch.setattr(network, "SOCKETCAND_HANDSHAKE_S", 0.2)
+    monkeypatch.setattr(socketcand_client, "SOCKETCAND_HANDSHAKE_S", 0.2)
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
     done = threading.Event()
@@ -180,3 +182,66 @@ def test_a_server_that_is_not_socketcand_is_one_line(monkeypatch, says, expected
         done.set()
         thread.join(5.0)
         listener.close()
+
+
+def test_the_adapter_examples_of_real_drive_md_load_and_fail_in_one_line(tmp_path, capsys):
+    """docs/real-drive.md's PCAN and Kvaser tables are valid configuration, and on a machine without the
+    vendor's library give exactly the one line the page shows."""
+    page = (Path(__file__).resolve().parent.parent / "docs" / "real-drive.md").read_text()
+    blocks = [textwrap.dedent(b) for b in re.findall(r"```toml\n(.*?)```", page, re.S)]
+    shown = {b.split('interface = "')[1].split('"')[0]: b for b in blocks if "[bus]" in b}
+    assert set(shown) >= {"pcan", "kvaser"}
+    for interface, table in shown.items():
+        config = write_config(tmp_path, table)
+        assert load_config(config).bus.interface == interface
+        if vendor_library_present(interface, load_config(config).bus.channel):
+            continue
+        rc, lines = run_cli(capsys, "--config", config, "scan")
+        assert rc == 2 and len(lines) == 1, lines
+        prefix = f"drivectl: bus {interface}:"
+        assert lines[0].startswith(prefix) and lines[0].split(": cannot open: ")[0] in page.replace("`", " ")
+
+
+def test_config_show_keeps_the_bus_options(tmp_path, capsys):
+    config = write_config(tmp_path, KVASER)
+    assert main(["--config", config, "config", "show"]) == 0
+    shown = tmp_path / "shown.toml"
+    shown.write_text(capsys.readouterr().out)
+    assert load_config(shown).bus == load_config(config).bus  # channel 0 stays a number, options whole
+
+
+def test_socketcand_server_going_away_is_one_warning_and_a_bus_error(caplog):
+    """python-can's client read the server's EOF as "no frame" for ever (its notifier spinning) or, on a
+    reset, printed a traceback from the notifier thread, and its send raised BrokenPipeError. Through
+    open_bus: one warning, then a silent bus (the master's TPDO deadline sees it), sends a can.CanError."""
+    from drivectl.plant_emulator.socketcand import SocketcandServerBus
+
+    server = SocketcandServerBus(port=0)
+    client = open_bus("socketcand", "can0", host="127.0.0.1", port=server.port)
+    try:
+        assert server.wait_for_client(5.0)
+        server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+        assert client.recv(5.0) is not None
+        with caplog.at_level("WARNING"):
+            server.shutdown()
+            assert client.recv(0.2) is None  # the EOF (there at once: shutdown closed the socket), not a frame
+            assert client.recv(0.01) is None  # and quiet afterwards
+        lost = [r.getMessage() for r in caplog.records if "connection lost" in r.getMessage()]
+        assert lost == [f"socketcand on can0@127.0.0.1:{server.port}: connection lost (the server closed it)"]
+        with pytest.raises(can.CanOperationError, match="connection lost"):
+            client.send(can.Message(arbitration_id=0x201, data=b"\x00", is_extended_id=False))
+    finally:
+        client.shutdown()
+        server.shutdown()
+
+
+def test_socketcand_server_without_the_channel_is_one_line_naming_it():
+    from drivectl.plant_emulator.socketcand import SocketcandServerBus
+
+    server = SocketcandServerBus(port=0, channel="can0")
+    try:
+        with pytest.raises(BusOpenError, match=r"bus socketcand 127.0.0.1:\d+ \(can1\): cannot open: the server has no "
+                                               r"bus named 'can1' \(bus.channel\)"):
+            open_bus("socketcand", "can1", host="127.0.0.1", port=server.port)
+    finally:
+        server.shutdown()

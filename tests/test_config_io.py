@@ -113,12 +113,13 @@ def test_write_config_without_a_file_in_use_is_one_line(tmp_path, capsys, monkey
     assert rc == 2 and err.count("\n") == 1 and "--write-config" in err, err
 
 
-def test_identify_write_config_points_the_axis_at_the_identified_plant(tmp_path, capsys):
+def test_identify_write_config_points_the_axis_model_at_the_identified_plant(tmp_path, capsys):
     path = tmp_path / "m.toml"
     path.write_text(DEFAULT_CONFIG_TOML)
     rc = main(["--config", str(path), "identify", "--axis", "x", "--sim", "--out", str(tmp_path),
                "--write-config", str(path)])
     out = capsys.readouterr()
     assert rc == 0, out.err
-    plant = load_config(path).axis("x").plant
-    assert Path(plant) == (tmp_path / "x-identified.toml").resolve()
+    model = load_config(path).axis("x").model  # what the controller believes; the plant stays rigid-x
+    assert Path(model) == (tmp_path / "x-identified.toml").resolve()
+    assert load_config(path).axis("x").plant == "rigid-x"

@@ -115,10 +115,44 @@ def test_a_trace_lost_after_the_run_is_one_line_and_exit_1(tmp_path, capsys, mon
         raise trace_stream.TraceWriteError(f"{folder}/x-1.csv.partial: trace incomplete: No space left on device "
                                            "after 0 rows; the rows written before are kept")
 
+    def stream_full(self, trailer=None, *, complete=True):
+        self.abandon()
+        raise trace_stream.TraceWriteError(f"{self.partial}: trace incomplete: No space left on device")
+
     monkeypatch.setattr(trace_stream, "write_trace", full)
+    # the run streams its trace (servo.Recording): the disk fills under the stream, then the rewrite fails too
+    monkeypatch.setattr(trace_stream.TraceWriter, "close", stream_full)
     rc = main([*SIM, "--out", str(tmp_path / "out")])
     cap = capsys.readouterr()
     assert rc == 1
     assert "completed" in cap.out  # the summary of the run that happened
     lines = [ln for ln in cap.err.splitlines() if ln.startswith("drivectl: ")]
     assert len(lines) == 1 and "No space left on device" in lines[0]
+
+
+def test_bode_out_naming_a_file_is_refused_before_the_measurement(tmp_path, capsys):
+    f = tmp_path / "x.csv"
+    f.write_text("not a folder")
+    _refused(capsys, ["bode", "--axis", "x", "--sim", "--out", str(f)], "--out", "not a folder")
+    assert f.read_text() == "not a folder"
+
+
+def test_identify_out_naming_a_file_is_refused_before_the_runs(tmp_path, capsys):
+    f = tmp_path / "x.csv"
+    f.write_text("not a folder")
+    _refused(capsys, ["identify", "--axis", "x", "--sim", "--out", str(f)], "--out", "not a folder")
+
+
+def test_a_profile_path_that_is_not_utf8_is_recorded_escaped(tmp_path, capsys):
+    """The trace records the profile's path as text: a name that is not UTF-8 is written escaped, not a
+    traceback after the run."""
+    profile = Path(os.fsdecode(bytes(tmp_path) + b"/move-\xff.toml"))
+    try:
+        profile.write_text('kind = "dwell"\nposition = 0.0\nduration = 0.02\n')
+    except (OSError, UnicodeEncodeError):
+        pytest.skip("this file system does not take non-UTF-8 names")
+    out = tmp_path / "out"
+    rc = main([*SIM, "--profile", str(profile), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    tr = Trace.read(out / "x.csv")
+    assert "move-\\udcff.toml" in tr.meta["profile"]

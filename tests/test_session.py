@@ -136,9 +136,13 @@ def test_relative_run_of_a_profile(machine):
     prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.4)
     with pytest.raises(LimitError, match="starts at"):
         x.run(prof)  # absolute: the axis is not at the start
-    h = x.run(prof, relative=True).wait(5)
+    with pytest.raises(LimitError, match=r"velocity 0.44\d+ exceeds the axis's max_velocity_m_s 0.1"):
+        x.run(PointToPoint(0.0, 0.05, 0.5, 5.0, 200.0), relative=True)
+    h = x.run(prof, relative=True, record=machine.loop.fault_dir).wait(5)
     assert h.status == "done"
     tr = h.trace
+    streamed = Trace.read(h.path)
+    assert streamed.meta["stop"] == "done" and np.allclose(streamed.pos, tr.pos, rtol=0, atol=1e-9)
     assert isinstance(tr, Trace) and len(tr) == round(0.4 / 0.001) + 1
     assert tr.ref[0] == pytest.approx(0.01, abs=1e-9) and tr.ref[-1] == pytest.approx(0.015, abs=1e-9)
     assert np.max(np.abs(tr.error)) < 50e-6
@@ -199,7 +203,7 @@ def test_capture_around_an_injected_fault_and_the_fault_ring_on_disk(tmp_path):
         assert len(tr) == 201 and tr.time[-1] == 0.0
         assert tr.ref[-1] > 0 and "drive fault" in tr.meta["capture_detail"]
         files = m.loop.flush()
-        assert len(files) == 1 and files[0].name.startswith("x-fault-")
+        assert len(files) == 1 and files[0].name.startswith("x-fault-")  # the armed capture, on disk
         assert len(Trace.read(files[0])) == 201
         with pytest.raises(AxisError, match="fault_reset first"):
             x.enable()
@@ -327,3 +331,98 @@ def test_homing_switch_not_found_is_one_error(tmp_path):
         with pytest.raises(Exception, match="home switch not found within 10 mm"):
             x.home().wait(1)
         assert x.state == "servo"
+
+
+def test_approach_plans_a_visible_move_to_the_profile_start_and_the_run_follows():
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel, plan_run, run_channels
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+    cfg = config()
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), initial_position=0.03)
+    ctrl = make_controller("pid-dob", 0.001, {}, plant=spec, axis="x")
+    prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.3)
+    ch = Channel(axis, ctrl, prof, cfg.axis("x").limits)
+    approach, moves = plan_approach([ch], where_axes_stand([ch]), {"x": cfg.axis("x").motion})
+    assert moves == ["approach: axis x from 30.000 mm to its profile's start 0.000 mm (30.000 mm, 0.42 s at up "
+                     "to 100 mm/s)"]
+    with pytest.raises(LimitError, match="--no-approach; nothing moved"):
+        consent(False, moves)
+    with pytest.raises(LimitError, match="use --approach"):
+        consent(None, moves)  # no terminal here: refused, naming the flag
+    assert axis.power is PowerState.SWITCH_ON_DISABLED
+    consent(True, moves)
+    plan = plan_run([ch])
+    first = run_channels(approach, disable_at_end=False)
+    assert first.ok and abs(first.trace.pos[-1]) < 5e-6
+    res = run_channels(plan)
+    assert res.ok and abs(res.trace.pos[0]) < 5e-6 and abs(res.trace.pos[-1] - 0.005) < 5e-6
+
+
+def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
+    """The stall is injected through the loop's clock (a jump of 10 s between two cycles), so the
+    outcome does not depend on how busy the machine is."""
+    import time
+
+    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), name="x")
+    ch = Channel(axis, make_controller("pid-dob", 0.001, {}, plant=spec, axis="x"), None, config().axis("x").limits)
+    jump = {"s": 0.0}
+    loop = ServoLoop([ch], clock="wall", stall_s=5.0, now=lambda: time.perf_counter() + jump["s"])
+    loop.start()
+    try:
+        rt = loop.axes["x"]
+        rt.state = AxisState.ENABLING
+        loop.submit(axis.enable)
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
+        jump["s"] = 10.0  # the next cycle starts 10 s after the last one, as far as the loop can tell
+        assert loop.run_until(lambda: loop.faults, 10.0)
+        fault = loop.faults[0]
+        assert fault.kind == "servo loop stalled" and "no cycle for 100" in fault.detail
+        assert fault.safe_state["x"] in ("Switch On Disabled", "Quick Stop Active")
+        assert rt.state is AxisState.OFF and loop.status()["stalls"] == 1
+    finally:
+        loop.close()
+    assert axis.power is PowerState.SWITCH_ON_DISABLED
+
+
+def test_a_controller_that_raises_stops_every_axis_instead_of_killing_the_loop(machine):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(0.01)
+    machine.advance(0.05)
+
+    def broken(ref, fb):
+        raise FloatingPointError("nan in the state")
+
+    machine.loop.axes["x"].ch.controller.step = broken
+    with pytest.raises(MotionFault, match="FloatingPointError"):
+        h.wait(1)
+    assert x.state == "off" and x.power in (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE)
+    machine.advance(0.05)  # the loop goes on cycling the (disabled) axis
+    assert machine.status()["faults"] == 1
+
+
+def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
+    with drivectl.connect(config(), axes=["x", "y"], fault_dir=tmp_path, faults=["y/emcy-fault@0.4"],
+                          ring_s=0.25) as m:
+        for ax in m.axes.values():
+            ax.enable()
+        h = m.axes["x"].move_to(0.02)
+        with pytest.raises(MotionFault):
+            h.wait(2)
+        files = sorted(m.loop.flush())
+    assert [f.name.split("-fault-")[0] for f in files] == ["x", "y"]  # every axis, the ring's last 0.25 s
+    tr = Trace.read(files[0])
+    assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
+    assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
+    assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)

@@ -364,20 +364,35 @@ def test_socketcand_idle_connection_does_not_hold_the_server():
         server.shutdown()
 
 
-def test_socketcand_idle_raw_client_is_closed_and_clients_are_capped():
-    server = SocketcandServerBus(port=0, idle_timeout=0.3, max_clients=2)
-    first = raw_mode_socket(server)
+def test_socketcand_clients_are_capped_and_a_client_that_stops_reading_is_closed():
+    """At most max_clients connections; a raw client on a quiet bus stays (a resident master between
+    runs); one that takes none of the frames waiting for it for idle_timeout is closed (dead or hung)."""
+    server = SocketcandServerBus(port=0, idle_timeout=0.3, max_clients=2, raw_hold_off=0)
+    quiet = raw_mode_socket(server)
+    stalled = raw_mode_socket(server, SO_RCVBUF=4096)
     try:
-        second = raw_mode_socket(server)
         with socket.create_connection(("127.0.0.1", server.port), timeout=GUARD) as third:
             assert read_until_closed(third) == b"< error too many clients >"
-        assert read_until_closed(first) == b""  # neither sent nor took a byte for 0.3 s
-        assert read_until_closed(second) == b""
+        time.sleep(0.5)  # longer than idle_timeout on a quiet bus: nobody is closed
+        assert server.raw_clients == 2
+        port = stalled.getsockname()[1]
+        mine = next(c for c in server._clients if c.peer.endswith(f":{port}"))
+        mine.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        quiet.close()  # (it would read; here it leaves)
+        frames = 0
+        while not mine.dropped and frames < 100_000:  # until its kernel buffers and then its queue are full
+            server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            frames += 1
+        assert mine.dropped, "the stalled client's queue never filled"
+        deadline = time.monotonic() + GUARD
+        while mine in server._clients and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert mine not in server._clients
         master = open_socketcand_client(server)  # the slots are free again
         master.shutdown()
     finally:
-        first.close()
-        second.close()
+        quiet.close()
+        stalled.close()
         server.shutdown()
 
 
@@ -555,3 +570,32 @@ def test_shutdown_wakes_a_blocked_recv_and_stops_the_io_thread(make, label):
     with pytest.raises(can.CanOperationError, match=f"{label} is shut down"):
         bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
     bus.shutdown()
+
+
+def test_served_bus_receive_queue_is_bounded_and_shutdown_still_wakes(monkeypatch):
+    """A client flooding faster than the emulator reads loses frames (counted), it does not grow memory;
+    shutting down with the queue full still wakes a reader."""
+    from drivectl.plant_emulator import served_bus
+
+    monkeypatch.setattr(served_bus, "RX_QUEUE_FRAMES", 10)
+    server = SocketcandServerBus(port=0)
+    client = open_socketcand_client(server)
+    try:
+        for i in range(50):
+            client.send(can.Message(arbitration_id=0x100 + i, data=b"", is_extended_id=False))
+        deadline = time.monotonic() + GUARD
+        while server._rx.qsize() + server.rx_overruns < 50 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert (server._rx.qsize(), server.rx_overruns) == (10, 40)
+        assert [recv(server).arbitration_id for _ in range(10)] == list(range(0x100, 0x10A))  # the first kept
+        for i in range(20):  # full again: the shutdown's sentinel must still get in
+            client.send(can.Message(arbitration_id=0x200 + i, data=b"", is_extended_id=False))
+        while server._rx.qsize() < 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert server._rx.full()
+    finally:
+        client.shutdown()
+        server.shutdown()
+    with pytest.raises(can.CanOperationError, match="shut down"):
+        for _ in range(11):  # what was queued, then the sentinel
+            server.recv(GUARD)

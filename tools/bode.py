@@ -388,6 +388,8 @@ def measure_frf(
     model: str | None = None,
     plant: str | None = None,
     controller: Controller | None = None,
+    noise: float = 0.0,
+    seed: int = 0,
 ) -> BodeResult:
     """Hold ``axis_name`` under its configured controller, add a multisine of peak ``amplitude``
     (effort unit; default 5 % of max_effort) on [fmin, fmax] Hz to the effort for ``seconds``, and
@@ -428,7 +430,7 @@ def measure_frf(
     ctrl = ExcitedController(inner, exc)
     hold = hold_position(cfg, axis_name)
     profile = Hold(hold, periods * PERIOD_S)
-    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold})
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold}, noise=noise, seed=seed)
     try:
         meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": "hold + multisine on the effort",
                 "bus": machine.bus,
@@ -574,7 +576,14 @@ def cmd_bode(args: argparse.Namespace) -> int:
     from drivectl.tools.config import load_config
 
     try:
+        from drivectl.tools.trace import TraceError
+        from drivectl.tools.trace_stream import check_output_folder
+
         cfg = load_config(getattr(args, "config", None))
+        try:  # before the axis moves: the response goes there after the measurement
+            check_output_folder(args.out, "--out", 5_000_000)
+        except TraceError as exc:
+            raise ConfigError(str(exc)) from None
         res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
                           fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant)
     except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
@@ -584,7 +593,13 @@ def cmd_bode(args: argparse.Namespace) -> int:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 1
     if not res.ok:
-        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; axis quick-stopped and disabled, "
+        from drivectl.controllers.safe_stop import end_state_line
+
+        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+        after = m.get("safe_after_cycles", "unknown")
+        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                               {res.axis: None if after == "unknown" else int(after)})
+        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
               "no response written", file=sys.stderr)
         return 1
     write_bode(res, args.out)

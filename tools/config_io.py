@@ -55,6 +55,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     bus["host"].comment("socketcand only")
     bus.add("port", b.port)
     bus["port"].comment("socketcand only")
+    if b.options:
+        bus.add("options", dict(b.options))  # [bus.options]: passed to can.Bus as they are
     doc.add("bus", bus)
     axes = tomlkit.table(is_super_table=True)
     for name, ac in cfg.axes.items():

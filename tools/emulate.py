@@ -47,9 +47,9 @@ def add_emulate_parser(sub: Any) -> None:
                      help="a python-can interface to join (socketcan, or an adapter: pcan, kvaser, ...)")
     e.add_argument("--channel", default="vcan0", help="channel for --interface (default vcan0)")
     e.add_argument("--bitrate", type=int, default=1_000_000, help="bit/s for --interface (default 1000000)")
-    e.add_argument("--idle-timeout", type=float, default=60.0, metavar="S",
-                   help="--socketcand: close a client that neither sent nor took a byte for S seconds "
-                   "(default 60; 0: never)")
+    e.add_argument("--idle-timeout", type=float, default=30.0, metavar="S",
+                   help="--socketcand: close a client that took none of the frames waiting for it for S seconds "
+                   "(dead or hung; default 30; 0: never)")
     e.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
                    help="add a physical effect to every emulated plant (repeatable)")
     e.add_argument("--plant", help="override the plants (built-in name or TOML file)")

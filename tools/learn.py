@@ -27,6 +27,16 @@ controller). Method (a frequency-domain, model-inverse ILC with a zero-phase Q-f
   accumulating), and nothing is learned near a mode the model may place wrongly (default: half the
   model's lowest mode, at most 50 Hz).
 
+**The repetitions** are one continuous run (:class:`RepeatedProfile`): the move, a jerk-limited
+return to its start and a hold (0.5 s), again, so the loop never stops and the controller keeps its
+state between repetitions as it would on the machine (an observer stays converged; a controller reset
+at each start instead met the plant's disturbance with a cold estimate, a repetition-to-repetition
+variation the learning cannot remove). :class:`RepeatingLearner` adds the correction in each
+repetition's rows, records the error and updates the correction at the repetition's last row; one
+trace per repetition is cut from the run (``AXIS-rep01.csv`` ...). A repetition whose RMS error is
+more than :data:`DIVERGENCE_RATIO` times the best one's steps back to the best correction with half the
+gain (printed): a loop further from its model than the gain tolerates does not run away.
+
 The learned correction is saved as ``AXIS-learned.npz`` (correction, dt, cycles, profile name and a
 hash of its sampled reference, axis, effort unit, controller, how it was learned) and reused with
 ``--learned FILE``, which must match the run (dt, length, profile) or is refused with one line.
@@ -47,7 +57,9 @@ from scipy import signal
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.learning import LearnedFeedforward
+from drivectl.driver.axis import Feedback
 from drivectl.plant_emulator.models import PlantSpec
+from drivectl.profiles.base import Reference
 
 #: learning gain: the error in the pass band shrinks by (1 - gain) per run on an exact model
 DEFAULT_GAIN = 0.5
@@ -285,7 +297,7 @@ def wants_learning(args: argparse.Namespace) -> bool:
 DIVERGENCE_RATIO = 1.25
 #: the return move between repetitions: gentle, jerk-limited
 RETURN_VMAX, RETURN_AMAX, RETURN_JMAX = 0.05, 0.5, 10.0
-#: cycles held at the start before the next repetition
+#: held at the start before the next repetition, s
 RETURN_SETTLE_S = 0.5
 
 
@@ -342,26 +354,141 @@ def prepare_repeated(args: argparse.Namespace, cfg: Any, names: list[str], profi
     return RepeatPlan(reps, cycles, refs, profile_names, corrections, given)
 
 
+class RepeatedProfile:
+    """``repeat`` times: ``profile`` for ``cycles`` rows, then back to its start (a jerk-limited move)
+    and a hold, ``between`` rows in all; one continuous reference, so that the loop never stops and
+    the controller keeps its state from one repetition to the next, as on a machine. Rows, not seconds,
+    delimit the parts, so every repetition samples its profile at exactly the times of the first."""
+
+    def __init__(self, profile: Any, dt: float, cycles: int, between: int, repeat: int, end: float):
+        from drivectl.profiles.ptp import PointToPoint
+
+        self.name = getattr(profile, "name", "profile")
+        self.source = getattr(profile, "source", None)
+        self.profile, self.dt, self.cycles, self.between, self.repeat = profile, dt, cycles, between, repeat
+        self.start_position = float(profile.sample(np.array([0.0]))[0][0])
+        self._back = None
+        if abs(end - self.start_position) > 1e-12:
+            self._back = PointToPoint(end, self.start_position, RETURN_VMAX, RETURN_AMAX, RETURN_JMAX, name="return")
+        self.period = cycles + between
+        self.rows = repeat * cycles + (repeat - 1) * between
+        self.duration = (self.rows - 1) * dt
+
+    @staticmethod
+    def between_rows(end: float, start: float, dt: float) -> int:
+        from drivectl.profiles.ptp import PointToPoint
+
+        move = 0.0 if abs(end - start) <= 1e-12 else PointToPoint(end, start, RETURN_VMAX, RETURN_AMAX,
+                                                                   RETURN_JMAX).move_time
+        return int(math.ceil((move + RETURN_SETTLE_S) / dt))
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, ...]:
+        tt = np.asarray(t, dtype=float)
+        k = np.rint(tt.ravel() / self.dt).astype(np.int64)
+        j = np.clip(k, 0, None) % self.period
+        inside = j < self.cycles
+        out = [np.zeros(k.shape) for _ in range(4)]
+        if inside.any():
+            parts = self.profile.sample(j[inside] * self.dt)
+            for o, part in zip(out, parts, strict=True):
+                o[inside] = part
+        back = ~inside
+        if back.any():
+            local = (j[back] - self.cycles + 1) * self.dt  # the repetition's last row is the move's t = 0
+            if self._back is not None:
+                parts = self._back.sample(local)
+            else:
+                z = np.zeros(local.shape)
+                parts = (z + self.start_position, z, z, z)
+            for o, part in zip(out, parts, strict=True):
+                o[back] = part
+        return tuple(o.reshape(tt.shape) for o in out)
+
+
+class RepeatingLearner(Controller):
+    """The axis's controller plus, in each repetition's rows, the current correction; records the error
+    and, at each repetition's last row, updates the correction for the next one (``Learning``) and calls
+    ``on_repetition(axis, rep, max_um, rms_um)``. Outside the repetitions (return, hold) the controller
+    alone. It is reset once, at the start of the run: its state carries over, as on a machine."""
+
+    SettingsClass = None  # type: ignore[assignment] - a wrapper
+
+    def __init__(self, axis: str, inner: Controller, correction: np.ndarray, schedule: RepeatedProfile,
+                 learning: Learning | None, on_repetition: Any):
+        self.axis = axis
+        self.inner = inner
+        self.name = inner.name  # type: ignore[misc]
+        self.dt = inner.dt
+        self.schedule = schedule
+        self.learning = learning
+        self.on_repetition = on_repetition
+        self.correction = np.asarray(correction, dtype=float).copy()
+        self.used: list[np.ndarray] = []  # the correction each repetition ran with
+        self.best: tuple[float, np.ndarray] | None = None
+        self._c = self.correction.tolist()
+        self._e = np.zeros(schedule.cycles)
+        self._k = 0
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self._k = 0
+
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        self.inner.prepare(profile, times)
+
+    def step(self, reference: Reference, feedback: Feedback) -> float:
+        k = self._k
+        self._k = k + 1
+        u = self.inner.step(reference, feedback)
+        rep, j = divmod(k, self.schedule.period)
+        if j >= self.schedule.cycles:
+            return u
+        u += self._c[j]
+        self.inner.note_applied(u)
+        self._e[j] = reference.position - feedback.position
+        if j == self.schedule.cycles - 1:
+            self._end_of_repetition(rep + 1)
+        return u
+
+    def _end_of_repetition(self, rep: int) -> None:
+        e = self._e
+        max_um, rms_um = float(np.max(np.abs(e))) * 1e6, float(np.sqrt(np.mean(e * e))) * 1e6
+        self.used.append(self.correction)
+        note = ""
+        lr = self.learning
+        if lr is not None:
+            if self.best is None or rms_um <= self.best[0]:
+                self.best = (rms_um, self.correction)
+                self.correction = lr.update(self.correction, e)
+            elif rms_um > DIVERGENCE_RATIO * self.best[0]:
+                # worse than the best run by more than noise explains: the loop differs from the model
+                # more than the gain tolerates; back to the best correction, half the gain
+                lr.set_gain(lr.gain / 2)
+                self.correction = self.best[1]
+                note = (f"error rose to {rms_um:.3f} um rms (best {self.best[0]:.3f}): back to the best correction, "
+                        f"learning gain halved to {lr.gain:g}")
+            else:
+                self.correction = lr.update(self.correction, e)
+            self._c = self.correction.tolist()
+        if self.on_repetition is not None:
+            self.on_repetition(self.axis, rep, max_um, rms_um, note)
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.inner.describe(), "learned": "learning" if self.learning else "given correction"}
+
+
 def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cfg: Any, names: list[str],
                  profiles: dict[str, Any], specs: dict[str, PlantSpec], models: dict[str, PlantSpec],
-                 controllers: dict[str, Controller], effects: list, faults: Any) -> int:
-    """``trace --repeat N [--learn] [--learned FILE]``; returns the exit code (as plain ``trace``)."""
-    import copy
-
+                 controllers: dict[str, Controller], builders: dict[str, Any], effects: list, faults: Any) -> int:
+    """``trace --repeat N [--learn] [--learned FILE]``: one continuous run of N repetitions with return
+    moves between them; returns the exit code (as plain ``trace``)."""
     from drivectl.controllers.servo import Channel, StopReason, run_channels
-    from drivectl.profiles.ptp import PointToPoint
-    from drivectl.tools.bode import Hold
     from drivectl.tools.machine import open_machine
-    from drivectl.tools.metrics import summarize
+    from drivectl.tools.trace import Trace
 
     reps, cycles, refs = plan.repeat, plan.cycles, plan.refs
-    profile_names, corrections, given = plan.profile_names, plan.corrections, plan.given
+    profile_names, given = plan.profile_names, plan.given
     dt = cfg.cycle_s
-    duration = args.duration
-    pristine = {n: copy.deepcopy(c) for n, c in controllers.items()}  # fresh copies for the loop's response
-
-    def make_controllers(name: str) -> Controller:
-        return copy.deepcopy(pristine[name])
 
     learners: dict[str, Learning] = {}
     if args.learn:
@@ -370,107 +497,91 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
             q_hz = args.learn_hz if args.learn_hz is not None else default_q_hz(models[n], dt)
             lim = ac.limits.max_effort
             amplitude = 0.02 * (lim if math.isfinite(lim) else 10 * ac.rated_effort)
-            g = loop_response(models[n], lambda n=n: make_controllers(n), dt, cycles, float(refs[n][0]), amplitude)
+            g = loop_response(models[n], builders[n], dt, cycles, float(refs[n][0]),
+                              amplitude)
             learners[n] = Learning(g, dt, args.learn_gain, q_hz)
 
+    between = max(RepeatedProfile.between_rows(float(refs[n][-1]), float(refs[n][0]), dt) for n in names)
+    schedules = {n: RepeatedProfile(profiles[n], dt, cycles, between, reps, float(refs[n][-1])) for n in names}
     out = Path(args.out)
+    rows: dict[int, dict[str, tuple[float, float]]] = {}
+
+    def on_repetition(axis: str, rep: int, max_um: float, rms_um: float, note: str) -> None:
+        rows.setdefault(rep, {})[axis] = (max_um, rms_um)
+        if len(rows[rep]) == len(names):
+            print(f"{rep:>4} " + " ".join(f"{rows[rep][n][0]:>12.3f} {rows[rep][n][1]:>12.3f}" for n in names),
+                  flush=True)
+        if note:
+            print(f"     {axis}: {note}", flush=True)
+
+    wrappers = {n: RepeatingLearner(n, controllers[n], plan.corrections[n], schedules[n], learners.get(n),
+                                    on_repetition) for n in names}
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log)
     what = "learning" if args.learn else ("with the learned correction" if given else "plain")
-    print(f"trace: axis {','.join(names)}, {reps} repetition(s) of {cycles} cycles of {dt * 1e3:g} ms on "
-          f"{machine.bus}, {what} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
+    print(f"trace: axis {','.join(names)}, {reps} repetition(s) of {cycles} cycles of {dt * 1e3:g} ms with "
+          f"{between * dt:.2f} s back to the start between them, on {machine.bus}, {what} (Ctrl-C stops safely)",
+          file=sys.stderr, flush=True)
     if learners:
         print("  learning: " + "; ".join(f"{n}: gain {lr.gain:g}, Q {lr.q_hz:.1f} Hz, loop response on "
                                          f"{models[n].name}" for n, lr in learners.items()), file=sys.stderr)
     head = f"{'rep':>4} " + " ".join(f"{n + ' max um':>12} {n + ' rms um':>12}" for n in names)
     print(head)
     print("-" * len(head))
-    written: list[Path] = []
-    rows: list[dict[str, dict[str, float]]] = []
-    best: dict[str, tuple[float, np.ndarray]] = {}  # per axis: the lowest RMS error seen and its correction
-    result = None
-    code = 0
     try:
-        for rep in range(1, reps + 1):
-            channels = []
-            for n in names:
-                ac = cfg.axis(n)
-                meta = {"plant": specs[n].name, "model": models[n].name, "profile": profile_names[n],
-                        "bus": machine.bus, "config": cfg.source, "repetition": f"{rep}/{reps}"}
-                if effects:
-                    meta["effects"] = "; ".join(f"{e}:{','.join(f'{k}={v:g}' for k, v in p.items())}"
-                                                for e, p in effects)
-                axis = machine.axes[n]
-                limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                    axis, "drive_limits") else ac.limits
-                origin = "learned" if (args.learn and rep > 1) else ("from " + given[n] if n in given else "none")
-                ctrl = LearnedFeedforward(controllers[n], corrections[n], origin=origin)
-                channels.append(Channel(axis, ctrl, profiles[n], limits, meta))
-            result = run_channels(channels, duration=duration, stop_request=request, disable_at_end=(rep == reps))
-            for n, tr in result.traces.items():
-                written.append(tr.write(out / f"{n}-rep{rep:02d}.csv"))
-            if not result.ok:
-                break
-            row = {n: summarize(tr) for n, tr in result.traces.items()}
-            rows.append(row)
-            print(f"{rep:>4} " + " ".join(f"{row[n]['max_um']:>12.3f} {row[n]['rms_um']:>12.3f}" for n in names),
-                  flush=True)
-            if args.learn:
-                for n, lr in learners.items():
-                    tr = result.traces[n]
-                    rms = row[n]["rms_um"]
-                    if n not in best or rms <= best[n][0]:
-                        best[n] = (rms, corrections[n])
-                    elif rms > DIVERGENCE_RATIO * best[n][0]:
-                        # worse than the best run by more than noise explains: the loop differs from the model
-                        # more than the gain tolerates; back to the best correction, half the gain
-                        lr.set_gain(lr.gain / 2)
-                        corrections[n] = best[n][1]
-                        print(f"     {n}: error rose to {rms:.3f} um rms (best {best[n][0]:.3f}): back to the best "
-                              f"correction, learning gain halved to {lr.gain:g}", flush=True)
-                        continue
-                    corrections[n] = lr.update(corrections[n], np.asarray(tr.ref) - np.asarray(tr.pos))
-            if rep < reps:
-                back = []
-                for n in names:
-                    pos = float(result.traces[n].pos[-1])
-                    start = profiles[n].start_position
-                    if abs(pos - start) > 1e-9:
-                        back.append(Channel(machine.axes[n], controllers[n],
-                                            PointToPoint(pos, start, RETURN_VMAX, RETURN_AMAX, RETURN_JMAX,
-                                                         hold_until=None, name="return"),
-                                            channels[names.index(n)].limits, {}))
-                    else:
-                        back.append(Channel(machine.axes[n], controllers[n], Hold(start, RETURN_SETTLE_S),
-                                            channels[names.index(n)].limits, {}))
-                ret = run_channels(back, stop_request=request, disable_at_end=False,
-                                   duration=max(ch.profile.duration for ch in back) + RETURN_SETTLE_S)
-                if not ret.ok:
-                    result = ret
-                    print(f"drivectl: return move before repetition {rep + 1}: {ret.detail}", file=sys.stderr)
-                    break
+        channels = []
+        for n in names:
+            ac = cfg.axis(n)
+            meta = {"plant": specs[n].name, "model": models[n].name, "profile": profile_names[n],
+                    "bus": machine.bus, "config": cfg.source}
+            if effects:
+                meta["effects"] = "; ".join(f"{e}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for e, p in effects)
+            axis = machine.axes[n]
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
+                axis, "drive_limits") else ac.limits
+            channels.append(Channel(axis, wrappers[n], schedules[n], limits, meta))
+        result = run_channels(channels, stop_request=request)
     finally:
         machine.close()
+    written: list[Path] = []
+    done = len(rows)
+    for n, tr in result.traces.items():
+        for rep in range(1, reps + 1):
+            k0 = (rep - 1) * schedules[n].period
+            if k0 >= len(tr):
+                break
+            k1 = min(k0 + cycles, len(tr))
+            cols = {c: np.asarray(v)[k0:k1] for c, v in tr.columns.items()}
+            cols["time_s"] = np.arange(k1 - k0) * dt
+            meta = dict(tr.meta, repetition=f"{rep}/{reps}", cycles=str(k1 - k0))
+            origin = "learning" if args.learn and rep > 1 else ("from " + given[n] if n in given else "none")
+            meta["learned"] = origin
+            if k1 - k0 < cycles:
+                meta["stop"] = result.stop.value
+            written.append(Trace(cols, meta).write(out / f"{n}-rep{rep:02d}.csv"))
     if args.learn:
         for n in names:
-            lc = LearnedCorrection(n, corrections[n], dt, profile_names[n], reference_hash(refs[n]),
-                                   specs[n].effort_unit, controllers[n].name,
-                                   f"{len(rows)} repetition(s), gain {learners[n].gain:g}, "
-                                   f"Q {learners[n].q_hz:.1f} Hz, model {models[n].name}")
+            w, lr = wrappers[n], learners[n]
+            lc = LearnedCorrection(n, w.best[1] if w.best is not None else w.correction, dt, profile_names[n],
+                                   reference_hash(refs[n]), specs[n].effort_unit, controllers[n].name,
+                                   f"{done} repetition(s), gain {lr.gain:g}, Q {lr.q_hz:.1f} Hz, "
+                                   f"model {models[n].name}")
             written.append(lc.save(out / f"{n}-learned.npz"))
-    if rows and not args.no_plot:
-        written.append(plot_repetitions(rows, names, out / f"{'-'.join(names)}-repetitions.png"))
+    if done and not args.no_plot:
+        table = [{n: {"max_um": rows[r][n][0], "rms_um": rows[r][n][1]} for n in names}
+                 for r in sorted(rows) if len(rows[r]) == len(names)]
+        written.append(plot_repetitions(table, names, out / f"{'-'.join(names)}-repetitions.png"))
     for p in written:
         print(f"wrote {p}")
-    if result is not None and not result.ok:
+    if not result.ok:
         if result.stop is StopReason.INTERRUPTED:
-            print(f"drivectl: interrupted after {len(rows)} repetition(s); axis quick-stopped and disabled, traces "
-                  "kept", file=sys.stderr)
+            print(f"drivectl: interrupted after {done} repetition(s); axis quick-stopped and disabled, traces kept",
+                  file=sys.stderr)
             return 128 + request.signum if request.signum else 130
         print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, traces kept", file=sys.stderr)
-        code = 3 if result.stop is StopReason.FAULT else 1
-    return code
+        return 3 if result.stop is StopReason.FAULT else 1
+    return 0
 
 
 def plot_repetitions(rows: list[dict[str, dict[str, float]]], names: list[str], path: Path) -> Path:

@@ -280,7 +280,7 @@ class ServoLoop:
         self._stalled = False
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
-        self._gc_was_enabled = gc.isenabled()
+        self._gc_taken = False  # this loop holds the process's collector (wall clock)
         self.error: BaseException | None = None  # what killed the loop thread, if anything
         #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
         self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
@@ -324,14 +324,16 @@ class ServoLoop:
                     cap.cancel("the machine closed before it completed")
                 rt.captures.clear()
             self.flush()
-            if self.gc_control and self.clock == "wall":
-                gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            if self._gc_taken:
+                _release_gc()
+                self._gc_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
-                if self._gc_was_enabled:
-                    gc.enable()
         for rt in self._rts:
-            states[rt.name] = rt.ch.axis.power.value
+            axis = rt.ch.axis
+            if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
+                _quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+            states[rt.name] = axis.power.value
         return states
 
     def flush(self, timeout: float | None = 30.0) -> list[Path]:
@@ -627,9 +629,8 @@ class ServoLoop:
 
     def _setup_thread(self) -> None:
         if self.gc_control:
-            gc.collect()
-            gc.freeze()  # what exists now is never scanned again: young collections stay short
-            gc.disable()
+            _take_gc()
+            self._gc_taken = True
             self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
             try:
@@ -719,6 +720,32 @@ class ServoLoop:
 
 
 _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
+
+# the collector is the process's: the first wall-clock loop takes it, the last one gives it back
+_gc_lock = threading.Lock()
+_gc_holders = 0
+_gc_was_enabled = True
+
+
+def _take_gc() -> None:
+    global _gc_holders, _gc_was_enabled
+    with _gc_lock:
+        if _gc_holders == 0:
+            _gc_was_enabled = gc.isenabled()
+            gc.collect()
+            gc.freeze()  # what exists now is never scanned again: young collections stay short
+            gc.disable()
+        _gc_holders += 1
+
+
+def _release_gc() -> None:
+    global _gc_holders
+    with _gc_lock:
+        _gc_holders -= 1
+        if _gc_holders == 0:
+            gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            if _gc_was_enabled:
+                gc.enable()
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

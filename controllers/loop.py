@@ -264,6 +264,8 @@ class ServoLoop:
         self.missed = 0
         self.worst_late = 0.0
         self.stalls = 0
+        self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
+        self.skipped = 0  # slots skipped because the loop was that far behind
         self.gc_runs = 0
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
@@ -609,11 +611,13 @@ class ServoLoop:
                     self._on_stall(t - last)
                 behind = int((t - pacer.t0) / self.dt) - k
                 if behind > 1:  # far behind: skip the lost slots instead of bursting cycles to catch up
-                    pacer.missed += behind - 1
+                    pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
+                    self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
                 self._cycle_all()
                 self._last_cycle_t = now()
                 k += 1
+                self.slots = k
                 self.missed, self.worst_late = pacer.missed, pacer.worst_late
                 if self.gc_control and k % 100 == 0:
                     self._collect(pacer, k)
@@ -682,13 +686,14 @@ class ServoLoop:
 
     # -- what the user's side reads ----------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        n = max(self.cycle, 1)
+        n = max(self.slots if self.clock == "wall" else self.cycle, 1)
         out: dict[str, Any] = {
             "clock": "wall clock, paced" if self.clock == "wall" else "lockstep (simulated time)",
             "cycle_s": self.dt,
             "cycles": self.cycle,
-            "missed_deadlines": self.missed,
-            "missed_fraction": self.missed / n,
+            "missed_deadlines": self.missed,  # cycles that started over half a period late, skipped ones included
+            "missed_fraction": self.missed / n,  # of the cycle slots since the start
+            "skipped_cycles": self.skipped,
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
             "stall_bound_ms": self.stall_s * 1e3,

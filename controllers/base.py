@@ -220,6 +220,20 @@ class Controller(ABC):
     def step(self, reference: Reference, feedback: Feedback) -> float:
         """The effort for this cycle from the reference and the sampled feedback."""
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Reference preview: called once before a run, after :meth:`reset`, with the profile and the
+        run's cycle times (step k follows ``times[k]``). A controller that plans ahead (a feed-forward
+        through a model with a transport delay needs the reference a few cycles early) computes it here;
+        the default needs nothing. Callers that cannot give a profile skip it: the controller then works
+        from each cycle's Reference alone."""
+
+    def note_applied(self, effort: Any) -> None:
+        """Told, after ``step``, the effort actually applied this cycle when something outside the law added
+        to it (a learned feedforward, controllers/learning.py). A law that remembers its own last effort
+        (time-delay estimation, a disturbance observer) overrides this to remember the applied one, so
+        that it does not take the addition for a disturbance and cancel it. Default: nothing."""
+        return None
+
     def describe(self) -> dict[str, Any]:
         """Name and settings, for trace metadata."""
         return {"controller": self.name, **{k: _plain(v) for k, v in self.settings.as_dict().items()}}

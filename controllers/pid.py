@@ -142,6 +142,10 @@ class PidDob(Pid):
         self.observer = DisturbanceObserver(self.dt, s.ff_mass, w0, s.dob_zeta, int(s.delay_cycles))
         self.last_effort = 0.0
 
+    def note_applied(self, effort: Any) -> None:
+        # the observer compares the effort that acted with the motion (controllers/base.py)
+        self.last_effort = effort
+
     @property
     def disturbance_estimate(self) -> Any:
         """The DOB's friction estimate g^, in the effort unit (N)."""

@@ -16,10 +16,11 @@ CONTROLLERS: dict[str, tuple[str, str]] = {
     "asmc": ("drivectl.controllers.asmc", "Asmc"),
     "pid": ("drivectl.controllers.pid", "Pid"),
     "pid-dob": ("drivectl.controllers.pid", "PidDob"),
+    "mbc": ("drivectl.controllers.mbc", "Mbc"),
 }
 
 #: controllers whose law uses the plant's nominal model (mass, friction) and take it at construction
-MODEL_BASED = ("asmc", "pid-dob")
+MODEL_BASED = ("asmc", "pid-dob", "mbc")
 
 
 def controller_class(name: str) -> type[Controller]:

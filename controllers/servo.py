@@ -23,12 +23,14 @@ from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from enum import Enum
+from pathlib import Path
 
 import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
-from drivectl.driver.axis import Axis, AxisError, FaultKind
+from drivectl.controllers.run_checks import JumpState, position_jump
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
 from drivectl.tools.trace import Trace, format_value
@@ -73,6 +75,8 @@ class Limits:
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
     max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
+    #: m: a second difference of the position beyond this is an encoder glitch (controllers/run_checks.py)
+    max_jump: float = 5e-4
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
@@ -87,6 +91,8 @@ class Limits:
             raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
         if not self.max_speed > 0:
             raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
+        if not self.max_jump > 0:
+            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
 
 
 #: power states with the torque off: where a stop must end
@@ -110,7 +116,7 @@ class Fault:
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
-            stale = self.safe_state.get(self.axis) == "unknown"
+            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
         out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
                               else "unknown (0x603F could not be read)")
@@ -129,6 +135,10 @@ class RunResult:
     fault: Fault | None = None
     #: False when the run ended before any axis was asked to enable (nothing moved)
     enabled: bool = True
+    #: the files the run streamed its traces to (``stream=``), per axis
+    paths: dict[str, Path] = field(default_factory=dict)
+    #: why a streamed trace could not be written whole (the run itself went on), per axis
+    stream_errors: dict[str, str] = field(default_factory=dict)
 
     @property
     def trace(self) -> Trace:
@@ -152,6 +162,8 @@ class Channel:
     #: first cycle of the current excursion outside the following-error window
     following_since: int | None = field(default=None, init=False, repr=False)
     last_position: float | None = field(default=None, init=False, repr=False)
+    #: cycles whose command was clipped to max_effort (since the run or the enable began)
+    clipped: int = field(default=0, init=False, repr=False)
 
 
 def run(
@@ -169,27 +181,45 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
-def run_channels(
-    channels: Sequence[Channel],
-    *,
-    duration: float | None = None,
-    progress: bool = False,
-    disable_at_end: bool = True,
-    on_start: Callable[[int], None] | None = None,
-    pace: bool = False,
-    stop_request: StopRequest | None = None,
-) -> RunResult:
-    """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
+#: cycles of reference sampled at a time: a run holds one chunk of its references, whatever its length
+REF_CHUNK = 8192
 
-    ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
-    interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
-    wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
-    worst lateness are measured and written into the trace metadata, never hidden.
 
-    SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
-    ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
-    command), otherwise the run routes them itself while it lasts (from the main thread).
-    """
+@dataclass
+class RunPlan:
+    """A run checked before anything moves: the channels, the cycle count and, chunk by chunk, every
+    channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths; the next
+    :data:`REF_CHUNK` cycles are sampled when the cycle reaches them, so the memory does not grow with
+    the run's length). ``keep``: the run's record is also held in memory (see :class:`Recording`)."""
+
+    channels: Sequence[Channel]
+    dt: float
+    n: int
+    refs: list[list[list[float]]] = field(default_factory=list)  # the chunk that starts at cycle ``base``
+    base: int = 0
+    keep: bool = True
+
+    @property
+    def cycles(self) -> int:
+        return self.n
+
+    @property
+    def t(self) -> np.ndarray:
+        """Every cycle's time (made when asked: a controller's preview, the in-memory record)."""
+        return np.arange(self.n) * self.dt
+
+    def load(self, k0: int) -> None:
+        """Sample the chunk of references that starts at cycle ``k0``."""
+        t = np.arange(k0, min(k0 + REF_CHUNK, self.n)) * self.dt
+        self.refs = [[a.tolist() for a in ch.profile.sample(t)] for ch in self.channels]
+        self.base = k0
+
+
+def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True) -> RunPlan:
+    """Check the channels and their profiles against the limits and sample the first references
+    (LimitError or ValueError, nothing moved). Planning a second run before the first ends (an approach
+    move, then the profile) lets the second follow the first within one cycle. ``keep=False``: the run
+    is recorded only where it streams (``run_channels(stream=...)``), at constant memory."""
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -204,136 +234,300 @@ def run_channels(
         source = getattr(longest, "source", None)
         what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
     n = check_run_length(total, dt, what)
-    t = np.arange(n) * dt
-
-    refs = []
     for ch in channels:
-        _check_profile(ch, float(t[-1]))
-        refs.append([a.tolist() for a in ch.profile.sample(t)])
-    rec = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in channels]
-    clipped = [0] * len(channels)
-    stop, detail, k_done = StopReason.COMPLETED, "", 0
-    fault: Fault | None = None
-    counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in channels]
-    enabled = PowerState.OPERATION_ENABLED
+        _check_profile(ch, (n - 1) * dt)
+    plan = RunPlan(channels, dt, n, keep=keep)
+    plan.load(0)
+    return plan
 
-    for ch in channels:
-        ch.controller.reset()
-    signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
-    with signals as request:
-        bar = None
-        k = 0
-        started = False
-        try:
-            if request.signum:
-                raise _Interrupted  # before anything is enabled: nothing moves
-            started = True
-            _bring_up(channels)
-            bar = _progress(n, progress)
-            pacer = Pacer(dt) if pace else None
-            for k in range(n):
-                if request.signum:
-                    raise _Interrupted  # at a cycle boundary: no frame is half-handled
-                if pacer is not None:
-                    pacer.wait(k)
-                for i, ch in enumerate(channels):
-                    try:
-                        fb = ch.axis.read()
-                    except AxisError as exc:
-                        fault = Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc))
-                        raise
-                    if ch.axis.power is not enabled:
-                        fault = _left_operation(ch, k)
-                        raise AxisError(fault.detail, FaultKind(fault.kind))
-                    pr, vr, ar, jr = refs[i]
-                    pos = fb.position
-                    ref = Reference(pr[k], vr[k], ar[k], jr[k])
-                    u = ch.controller.step(ref, fb)
-                    lim = ch.limits
-                    if u > lim.max_effort or u < -lim.max_effort:
-                        u = lim.max_effort if u > 0 else -lim.max_effort
-                        clipped[i] += 1
-                    r = rec[i]
-                    r["pos_m"][k] = pos
-                    r["vel_m_s"][k] = fb.velocity
-                    r["effort"][k] = u
-                    reason = _violation(ch, k, dt, pos, pr[k])
-                    if reason is not None:
-                        stop, kind, detail = reason
-                        fault = Fault(kind.value, ch.axis.name, k, detail)
-                        raise _Stop
-                    ch.axis.write(u)
-                k_done = k + 1
-                if k == 0 and on_start is not None:
-                    on_start(n)
-                if bar is not None and k % 250 == 0:
-                    bar.update(min(250, n - bar.n))
-        except _Stop:
-            k_done = k + 1
-            _safe_stop(channels, fault)
-        except (_Interrupted, KeyboardInterrupt):
-            stop = StopReason.INTERRUPTED
-            detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
-            fault = Fault("interrupted", channels[0].axis.name, k, detail)
-            if started:
-                _safe_stop(channels, fault)
-            else:
-                detail += " before the axes were enabled"
-                for ch in channels:
-                    fault.safe_after[ch.axis.name] = 0
-                    fault.safe_state[ch.axis.name] = ch.axis.power.value
-        except AxisError as exc:
-            stop, detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
-            if fault is None:  # raised by the bring-up or by a write
-                fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, detail)
-            _safe_stop(channels, fault)
-        finally:
-            if bar is not None:
-                bar.close()
-    if stop is StopReason.COMPLETED and disable_at_end:
+
+def run_channels(
+    channels: Sequence[Channel] | RunPlan,
+    *,
+    duration: float | None = None,
+    progress: bool = False,
+    disable_at_end: bool = True,
+    on_start: Callable[[int], None] | None = None,
+    pace: bool = False,
+    stop_request: StopRequest | None = None,
+    stream: str | Path | None = None,
+) -> RunResult:
+    """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
+
+    Read top-down: :func:`plan_run` (checks, references; nothing moves), :func:`_bring_up` (enable),
+    :func:`_run_cycles` (the cycle: :func:`sample_axis` -> :func:`control` -> record ->
+    :func:`check_and_write` per axis), then the ending (:func:`_safe_stop` on a fault or an interrupt,
+    :func:`_disable_all` on completion) and :class:`Recording` turning the arrays into traces.
+
+    ``channels`` may be a :class:`RunPlan` already made (``duration`` is then ignored).
+    ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
+    interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
+    wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
+    worst lateness are measured and written into the trace metadata, never hidden.
+    ``disable_at_end=False`` leaves the axes enabled (zero effort until the next run takes them).
+    ``stream``: a folder the traces are written to as the run goes (tools/trace_stream.py: a
+    ``.partial`` file flushed every 100 ms, renamed when the run ends, a new name per run and
+    ``AXIS.csv`` the latest; ``RunResult.paths``); the files are opened before anything moves, so an
+    output that cannot be written stops the run before it starts (TraceWriteError).
+
+    SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
+    ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
+    command), otherwise the run routes them itself while it lasts (from the main thread).
+    """
+    plan = channels if isinstance(channels, RunPlan) else plan_run(channels, duration)
+    channels = plan.channels
+    rec = Recording(plan, stream, pace)
+    try:
         for ch in channels:
-            ch.axis.disable()
-        _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
+            ch.controller.reset()
+            prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+            if prepare is not None:
+                prepare(ch.profile, plan.t)
+            ch.clipped = 0
+        pacer = Pacer(plan.dt) if pace else None
+        signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
+        with signals as request:
+            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
+        if outcome.stop is StopReason.COMPLETED and disable_at_end:
+            _disable_all(channels)
+    except BaseException:
+        rec.abandon()  # what was streamed stays, as a .partial file
+        raise
+    return rec.result(outcome, pacer)
 
-    traces = {}
-    pacing = {}
-    if pace and k_done:
-        pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
-                  "missed_fraction": format_value(pacer.missed / k_done),
-                  "worst_late_ms": format_value(pacer.worst_late * 1e3)}
-    for i, ch in enumerate(channels):
-        cols = {
-            "time_s": t[:k_done],
-            "ref_m": np.asarray(refs[i][0][:k_done]),
-            "pos_m": rec[i]["pos_m"][:k_done],
-            "effort": rec[i]["effort"][:k_done],
-            "vel_m_s": rec[i]["vel_m_s"][:k_done],
-        }
-        meta = {
+
+@dataclass
+class _Outcome:
+    """How the cycles ended (filled by :func:`_run_cycles`)."""
+
+    stop: StopReason = StopReason.COMPLETED
+    detail: str = ""
+    fault: Fault | None = None
+    cycles: int = 0  # cycles recorded
+    started: bool = False  # the axes were asked to enable
+
+
+def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
+                on_start: Callable[[int], None] | None, progress: bool) -> _Outcome:
+    """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
+    channels, dt, n = plan.channels, plan.dt, plan.cycles
+    if plan.base:
+        plan.load(0)  # a plan run a second time
+    refs, base = plan.refs, 0
+    out = _Outcome()
+    bar = None
+    k = 0
+    try:
+        if request.signum:
+            raise _Interrupted  # before anything is enabled: nothing moves
+        out.started = True
+        _bring_up(channels)
+        bar = _progress(n, progress)
+        for k in range(n):
+            if request.signum:
+                raise _Interrupted  # at a cycle boundary: no frame is half-handled
+            if pacer is not None:
+                pacer.wait(k)
+            j = k - base
+            if j == REF_CHUNK:  # the next chunk of references (bounded memory for any run length)
+                plan.load(k)
+                refs, base, j = plan.refs, k, 0
+            for i, ch in enumerate(channels):
+                fb = sample_axis(ch, k)
+                pr, vr, ar, jr = refs[i]
+                r = pr[j]
+                u = control(ch, Reference(r, vr[j], ar[j], jr[j]), fb)
+                rec.record(i, k, fb, u, r)
+                check_and_write(ch, k, dt, fb.position, r, u)
+            out.cycles = k + 1
+            if k == 0 and on_start is not None:
+                on_start(n)
+            if bar is not None and k % 250 == 0:
+                bar.update(min(250, n - bar.n))
+    except CycleFault as exc:
+        out.stop, out.fault, out.detail = exc.stop, exc.fault, exc.fault.detail
+        if exc.recorded:
+            out.cycles = k + 1
+        _safe_stop(channels, out.fault)
+    except (_Interrupted, KeyboardInterrupt):
+        out.stop = StopReason.INTERRUPTED
+        out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
+        out.fault = Fault("interrupted", channels[0].axis.name, k, out.detail)
+        if out.started:
+            _safe_stop(channels, out.fault)
+        else:
+            out.detail += " before the axes were enabled"
+            for ch in channels:
+                out.fault.safe_after[ch.axis.name] = 0
+                out.fault.safe_state[ch.axis.name] = ch.axis.power.value
+    except AxisError as exc:  # raised by the bring-up or by a write
+        out.stop, out.detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
+        out.fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, out.detail)
+        _safe_stop(channels, out.fault)
+    finally:
+        if bar is not None:
+            bar.close()
+    return out
+
+
+# -- one axis, one cycle (shared by run_channels and the resident loop, controllers/loop.py) ------------
+class CycleFault(Exception):
+    """A cycle found a reason to stop: a fault or a limit (``fault``), before or after the sample was
+    recorded (``recorded``)."""
+
+    def __init__(self, stop: StopReason, fault: Fault, recorded: bool):
+        super().__init__(fault.detail)
+        self.stop = stop
+        self.fault = fault
+        self.recorded = recorded
+
+
+def sample_axis(ch: Channel, k: int) -> Feedback:
+    """This cycle's sample of an axis that must be in Operation Enabled (else CycleFault)."""
+    try:
+        fb = ch.axis.read()
+    except AxisError as exc:
+        raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
+                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
+                         False) from None
+    if ch.axis.power is not PowerState.OPERATION_ENABLED:
+        raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
+    return fb
+
+
+def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
+    """The control law, clipped to the effort limit (clipped cycles counted)."""
+    u = ch.controller.step(ref, fb)
+    lim = ch.limits.max_effort
+    if u > lim or u < -lim:
+        ch.clipped += 1
+        return lim if u > 0 else -lim
+    return u
+
+
+def check_and_write(ch: Channel, k: int, dt: float, pos: float, ref: float, u: float) -> None:
+    """The limits (:func:`_violation`), then the setpoint out; CycleFault (recorded) on a violation."""
+    reason = _violation(ch, k, dt, pos, ref)
+    if reason is not None:
+        stop, kind, detail = reason
+        raise CycleFault(stop, Fault(kind.value, ch.axis.name, k, detail), True)
+    ch.axis.write(u)
+
+
+class Recording:
+    """Position, velocity and effort of every cycle of a run, preallocated; turned into one
+    :class:`~drivectl.tools.trace.Trace` per axis at the end, and (``stream``) written as the run goes
+    through :class:`~drivectl.tools.trace_stream.TraceWriter` (an append per cycle: no I/O in the cycle)."""
+
+    COLUMNS = ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")
+
+    def __init__(self, plan: RunPlan, stream: str | Path | None = None, paced: bool = False):
+        self.plan = plan
+        self.dt = plan.dt
+        if not plan.keep and stream is None:
+            raise ValueError("run: a plan made with keep=False records only by streaming: give stream=")
+        n = plan.cycles if plan.keep else 0
+        self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
+        self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
+        self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
+        self._head = [self._head_meta(ch, paced) for ch in plan.channels]
+        self.writers: list = []
+        if stream is not None:
+            from drivectl.tools.trace_stream import TraceWriter
+
+            try:
+                for ch, head in zip(plan.channels, self._head, strict=True):
+                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head).start())
+            except BaseException:
+                self.abandon()
+                raise
+        self._append = [w.append for w in self.writers] if self.writers else None
+
+    def _head_meta(self, ch: Channel, paced: bool) -> dict[str, str]:
+        """What is known before the run: the header of a streamed trace."""
+        return {
             "axis": ch.axis.name,
             "effort_unit": ch.axis.effort_unit,
-            "dt_s": format_value(dt),
+            "dt_s": format_value(self.plan.dt),
             **{k: format_value(v) for k, v in ch.controller.describe().items()},
             **{k: format_value(v) for k, v in ch.meta.items()},
-            "cycles": str(k_done),
-            "stop": stop.value,
-            **pacing,
+            "clock": "wall clock, paced" if paced else "lockstep",
         }
-        if detail:
-            meta["stop_detail"] = detail
-        if clipped[i]:
-            meta["effort_clipped_cycles"] = str(clipped[i])
-        for key, value in getattr(ch.axis, "counters", {}).items():
-            meta[key] = str(value - counters0[i].get(key, 0))
-        if fault is not None:
-            meta.update(fault.meta())
-            name = ch.axis.name
-            meta["safe_state"] = fault.safe_state.get(name, "unknown")
-            after = fault.safe_after.get(name)
-            meta["safe_after_cycles"] = "unknown" if after is None else str(after)
-        traces[ch.axis.name] = Trace(cols, meta)
-    return RunResult(traces, stop, detail, k_done, {ch.axis.name: c for ch, c in zip(channels, clipped, strict=True)},
-                     fault, started)
+
+    def record(self, i: int, k: int, fb: Feedback, u: float, ref: float) -> None:
+        if self._rows is not None:
+            r, pos, vel, eff = self._rows[i]
+            r[k] = ref
+            pos[k] = fb.position
+            vel[k] = fb.velocity
+            eff[k] = u
+        if self._append is not None:
+            self._append[i](k * self.dt, ref, fb.position, u, fb.velocity)
+
+    def abandon(self) -> None:
+        for w in self.writers:
+            try:
+                w.abandon()
+            except Exception:  # noqa: BLE001 - the others must still be closed
+                pass
+        self._append = None
+
+    def result(self, out: _Outcome, pacer: Pacer | None) -> RunResult:
+        plan, n = self.plan, out.cycles
+        pacing = {}
+        if pacer is not None and n:
+            pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
+                      "missed_fraction": format_value(pacer.missed / n),
+                      "worst_late_ms": format_value(pacer.worst_late * 1e3)}
+        traces = {}
+        paths: dict[str, Path] = {}
+        errors: dict[str, str] = {}
+        t = plan.t[:n] if plan.keep else None
+        for i, ch in enumerate(plan.channels):
+            head = self._head[i]
+            meta = {
+                **head,
+                "cycles": str(n),
+                "stop": out.stop.value,
+                **pacing,
+            }
+            if out.detail:
+                meta["stop_detail"] = out.detail
+            if ch.clipped:
+                meta["effort_clipped_cycles"] = str(ch.clipped)
+            for key, value in getattr(ch.axis, "counters", {}).items():
+                meta[key] = str(value - self._counters0[i].get(key, 0))
+            if out.fault is not None:
+                meta.update(out.fault.meta())
+                name = ch.axis.name
+                meta["safe_state"] = out.fault.safe_state.get(name, "unknown")
+                after = out.fault.safe_after.get(name)
+                meta["safe_after_cycles"] = "unknown" if after is None else str(after)
+            if plan.keep:
+                cols = {"time_s": t, **{k: v[:n] for k, v in self._cols[i].items()}}
+                traces[ch.axis.name] = Trace({k: cols[k] for k in self.COLUMNS}, meta)
+            if self.writers:
+                w = self.writers[i]
+                try:
+                    paths[ch.axis.name] = w.close({k: v for k, v in meta.items() if k not in head})
+                except Exception as exc:  # noqa: BLE001 - a write error must not lose the run's result
+                    errors[ch.axis.name] = str(exc)
+                if not plan.keep:  # the record is the file: read back (the rows it has, if it failed)
+                    try:
+                        tr = traces[ch.axis.name] = Trace.read(paths.get(ch.axis.name) or w.partial)
+                        if ch.axis.name in errors:  # cut short by the disk, not by the run: say how the run ended
+                            tr.meta.update({k: v for k, v in meta.items() if k != "cycles"})
+                    except Exception as exc:  # noqa: BLE001
+                        errors.setdefault(ch.axis.name, str(exc))
+        return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
+                         out.fault, out.started, paths, errors)
+
+
+def _disable_all(channels: Sequence[Channel]) -> None:
+    """The end of a completed run: every axis to Switch On Disabled through the cycle."""
+    for ch in channels:
+        ch.axis.disable()
+    _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
 
 
 class Pacer:
@@ -365,10 +559,6 @@ class Pacer:
             self.worst_late = late
         if late > 0.5 * self.dt:
             self.missed += 1
-
-
-class _Stop(Exception):
-    """Internal: a limit ended the run."""
 
 
 class _Interrupted(Exception):
@@ -414,6 +604,14 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
+    if last is None or "_jump" not in ch.__dict__:
+        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if jump is not None:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
+            "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
             f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
@@ -462,38 +660,19 @@ def _bring_up(channels: Sequence[Channel]) -> None:
 
 
 def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
-    """Quick stop now (the command goes out in this very cycle), then disable; cycle until every
-    drive reports a safe state, counting the cycles (into ``fault``), and go on when an axis fails:
-    the others must still be stopped. Where the TPDOs no longer bring the statusword, it is read by
-    SDO; where nothing answers, the state stays unknown (the drive's own watchdogs take over)."""
-    for ch in channels:
-        _quietly(ch.axis.quick_stop)
-        _quietly(ch.axis.write, 0.0)
-    safe_after: dict[str, int | None] = {}
-    for ch in channels:
-        if ch.axis.power in SAFE_STATES:
-            safe_after[ch.axis.name] = 0
-    for j in range(1, STATE_CHANGE_CYCLES + 1):
-        if len(safe_after) == len(channels):
-            break
-        if not _stop_cycle(channels):
-            break  # nothing answers: the drives' own watchdogs must stop them
-        for ch in channels:
-            if ch.axis.name not in safe_after and ch.axis.power in SAFE_STATES:
-                safe_after[ch.axis.name] = j
-    for ch in channels:
-        if ch.axis.power is not PowerState.FAULT:
-            _quietly(ch.axis.disable)
-    for _ in range(STATE_CHANGE_CYCLES):
-        if all(ch.axis.power not in _STILL_CHANGING for ch in channels):
-            break
-        if not _stop_cycle(channels):
-            break
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (controllers/safe_stop.py); the cycles to a
+    confirmed safe state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    from drivectl.controllers.safe_stop import stop_axes
+
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
     if fault is not None:
-        for ch in channels:
-            fault.safe_after[ch.axis.name] = safe_after.get(ch.axis.name)
-            fault.safe_state[ch.axis.name] = ch.axis.power.value if ch.axis.name in safe_after else "unknown"
-        faulted = next((ch.axis for ch in channels if ch.axis.name == fault.axis), None)
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
         if faulted is not None:
             fault.statusword = getattr(faulted, "statusword", None)
             code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None

@@ -114,6 +114,13 @@ class TdeController(Controller):
         self._acc = acc
         return acc
 
+    def note_applied(self, effort: Any) -> None:
+        # eq (18)'s u(t - dt) is the effort that acted, a learned feedforward included (controllers/base.py);
+        # not while eq (21) holds the acceleration at 0 (the first cycles): with no acceleration to balance
+        # it, h^ would integrate the addition cycle after cycle
+        if self._cycle > 3:
+            self._u1 = effort
+
     def _tde(self, u_c: Any, acc: Any) -> Any:
         """Eq (22): u = m~ u_c + h^, h^ = u(t - dt) - m~ x2''(t - dt) (eqs 18, 19)."""
         u = self._m * (u_c - acc) + self._u1

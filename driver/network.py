@@ -11,6 +11,7 @@ boundary: their networks are driven by a python-can Notifier as usual.
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import time
 from typing import Any
@@ -18,10 +19,25 @@ from typing import Any
 import can
 import canopen
 
-#: python-can interfaces the drivers know how to open
-INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
+from drivectl.driver.axis import AxisConfigError
+from drivectl.driver.frame_guard import FrameGuard
+from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
+
+log = logging.getLogger("drivectl.frames")
+
+#: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
+SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
+#: every interface name python-can knows (PCAN, Kvaser, IXXAT, Vector, gs_usb, ...): open_bus takes them all
+INTERFACES: tuple[str, ...] = tuple(sorted(can.interfaces.VALID_INTERFACES))
+#: keys a [bus.options] table may not set: they have keys of their own in [bus]
+RESERVED_OPTIONS = frozenset({"interface", "bustype", "channel", "bitrate", "host", "port", "can_filters"})
 
 _channel_counter = itertools.count()
+
+
+class BusOpenError(AxisConfigError):
+    """The bus could not be opened (driver library or device missing, nothing listening): bad input, one
+    line naming the interface and what python-can said, raised before anything moved."""
 
 
 def unique_virtual_channel(prefix: str = "drivectl") -> str:
@@ -29,19 +45,95 @@ def unique_virtual_channel(prefix: str = "drivectl") -> str:
     return f"{prefix}-{os.getpid()}-{next(_channel_counter)}"
 
 
-def open_bus(interface: str, channel: str, bitrate: int | None = None, **kwargs: Any) -> can.BusABC:
-    """A python-can bus by interface name, with the settings each needs here."""
+def open_bus(interface: str, channel: str | int, bitrate: int | None = None, **kwargs: Any) -> can.BusABC:
+    """A python-can bus by interface name, with the settings each needs here; ``kwargs`` (the [bus.options]
+    table, host/port for socketcand) go to ``can.Bus`` as they are and win over the defaults set here.
+
+    Any failure to open is one :class:`BusOpenError` line: python-can's own message (and what it logged
+    while trying: Kvaser's "canlib is unavailable" comes only as a log record), never its traceback."""
     if interface not in INTERFACES:
-        raise ValueError(f"bus: interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
+        raise BusOpenError(f"bus.interface: {interface!r} is not an interface python-can knows "
+                           f"(one of {', '.join(INTERFACES)})")
     if interface == "slcan":
         kwargs.setdefault("sleep_after_open", 0)  # else each open costs 2 s
     if bitrate is not None and interface != "virtual":
         kwargs["bitrate"] = bitrate
     if interface == "virtual":
         kwargs.setdefault("receive_own_messages", False)
+    where = f"bus {interface}:{channel}"
     if interface == "socketcand":
         kwargs.setdefault("tcp_tune", True)  # TCP_NODELAY + QUICKACK: else Nagle and delayed ACKs cost ~40 ms a cycle
+        host, port = kwargs.get("host", "127.0.0.1"), kwargs.get("port", 29536)
+        where = f"bus socketcand {host}:{port} ({channel})"
+        probe_socketcand(where, host, port, BusOpenError)
+    with _CanLogCapture() as captured:
+        try:
+            bus = _construct(interface, channel, kwargs)
+        except Exception as exc:  # noqa: BLE001 - python-can raises anything here (Kvaser without canlib: NameError)
+            said = _what_python_can_said(interface, exc, captured.records)
+            raise BusOpenError(f"{where}: cannot open: {said}") from None
+    captured.replay()
+    return bus
+
+
+def _construct(interface: str, channel: str | int, kwargs: dict[str, Any]) -> can.BusABC:
+    if interface == "socketcand":
+        return SocketcandClientBus.connect(channel, **kwargs)
     return can.Bus(interface=interface, channel=channel, **kwargs)
+
+
+class _CanLogCapture(logging.Handler):
+    """Holds python-can's log records while a bus opens: on failure they complete the one-line error,
+    on success the distinct ones are replayed once (never a flood: at most a few records are kept)."""
+
+    KEEP = 8
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+        self.dropped = 0
+        self._logger = logging.getLogger("can")
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.levelno < logging.WARNING:
+            return
+        if len(self.records) < self.KEEP and all(r.getMessage() != record.getMessage() for r in self.records):
+            self.records.append(record)
+        else:
+            self.dropped += 1
+
+    def __enter__(self) -> _CanLogCapture:
+        self._propagate = self._logger.propagate
+        self._logger.addHandler(self)
+        self._logger.propagate = False
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._logger.removeHandler(self)
+        self._logger.propagate = self._propagate
+
+    def replay(self) -> None:
+        for record in self.records:
+            logging.getLogger(record.name).handle(record)
+
+
+#: what python-can logged when an interface's module loaded without its library: it says so only once,
+#: at import, and the next open fails with nothing but a NameError
+_LOAD_NOTES: dict[str, str] = {}
+
+
+def _what_python_can_said(interface: str, exc: BaseException, records: list[logging.LogRecord]) -> str:
+    said = " ".join(str(exc).split()) or type(exc).__name__
+    logged = [m for m in (" ".join(r.getMessage().split()) for r in records) if m and m not in said]
+    if isinstance(exc, NameError | AttributeError):
+        # python-can's vendor modules load without their library (logging that it is missing) and fail
+        # on its first call: the log record is what says why
+        said = f"{type(exc).__name__}: {said}"
+        if logged:
+            _LOAD_NOTES[interface] = logged[0].rstrip(".")
+        why = _LOAD_NOTES.get(interface, "its driver library did not load")
+        said = f"{why} (python-can then failed: {said})"
+    return said if len(said) <= 400 else said[:397] + "..."
 
 
 class Lockstep:
@@ -75,13 +167,16 @@ class LockstepNetwork(canopen.Network):
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
-        self.log: can.Listener | None = None
+        self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
+        #: every received frame is checked before canopen's dispatch (driver/frame_guard.py)
+        self.frame_guard = FrameGuard()
+        self.handler_errors = 0
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
         if self.log is not None:
-            self.log.on_message_received(_logged(can_id, data, remote, rx=False))
+            self.log.sent(can_id, data, remote)
         self.lockstep.settle()
         if self.recv_error is not None:
             exc, self.recv_error = self.recv_error, None
@@ -105,8 +200,13 @@ class LockstepNetwork(canopen.Network):
             got = True
             if log is not None:
                 log.on_message_received(msg)
-            if not msg.is_error_frame:
-                notify(msg.arbitration_id, msg.data, msg.timestamp)
+            if not msg.is_error_frame and self.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+                try:
+                    notify(msg.arbitration_id, msg.data, msg.timestamp)
+                except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
+                    # must not end the pump (in lockstep that would be the sender's cycle); counted, logged
+                    self.handler_errors += 1
+                    _log_handler_error(msg.arbitration_id, exc, self.handler_errors)
         return got
 
     def disconnect(self) -> None:
@@ -120,12 +220,68 @@ class LockstepNetwork(canopen.Network):
         self.bus = None
 
 
+class GuardedListener(canopen.network.MessageListener):
+    """canopen's MessageListener with the frame checks of driver/frame_guard.py before its dispatch."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            return
+        net = self.network
+        if net.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+            try:
+                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
+            except Exception as exc:  # noqa: BLE001 - the notifier thread must go on
+                net.handler_errors = getattr(net, "handler_errors", 0) + 1
+                _log_handler_error(msg.arbitration_id, exc, net.handler_errors)
+
+
+def _log_handler_error(can_id: int, exc: Exception, count: int) -> None:
+    if count == 1 or count % 1000 == 0:  # rate-limited: a flood of one bad frame is one line per 1000
+        log.warning("frame 0x%03X: its handler raised %s: %s (%d so far; frame dropped)", can_id,
+                    type(exc).__name__, exc, count)
+
+
 def threaded_network(bus: can.BusABC) -> canopen.Network:
-    """A canopen Network driven by a python-can Notifier (for buses that cross processes)."""
+    """A canopen Network driven by a python-can Notifier (for buses that cross processes); every frame
+    checked by a :class:`FrameGuard` before canopen's dispatch."""
     net = canopen.Network(bus)
+    net.frame_guard = FrameGuard()
+    net.handler_errors = 0
+    net.listeners = [GuardedListener(net)]
     net.NOTIFIER_CYCLE = 0.05  # teardown waits up to one cycle; canopen's default is 1 s
     net.notifier = can.Notifier(bus, net.listeners, net.NOTIFIER_CYCLE)
     return net
+
+
+class BusLog(can.Listener):
+    """A python-can Logger (format by the file's suffix: .asc, .blf, .log, .csv, .trc) that stamps every
+    frame, sent or received, with one clock: the host's ``time.time()`` when this process sends or receives
+    it. Received frames arrive stamped by whoever received them first (the kernel, an adapter's own
+    counter, PCAN's boot-relative clock, the socketcand server's text), so they are restamped here."""
+
+    def __init__(self, path: str) -> None:
+        try:
+            self.logger = can.Logger(path)
+        except ValueError as exc:
+            raise ValueError(f"--bus-log {path}: {exc}") from None
+        self.path = path
+        self._stopped = False
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.logger.on_message_received(can.Message(
+            timestamp=time.time(), arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, channel=msg.channel,
+            dlc=msg.dlc, data=msg.data, is_fd=msg.is_fd, is_rx=msg.is_rx, bitrate_switch=msg.bitrate_switch,
+            error_state_indicator=msg.error_state_indicator, check=False))
+
+    def sent(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """A frame this process sent (python-can buses do not echo them)."""
+        self.logger.on_message_received(_logged(can_id, data, remote, rx=False))
+
+    def stop(self) -> None:
+        if not self._stopped:  # the notifier stops its listeners and close_threaded does too
+            self._stopped = True
+            self.logger.stop()
 
 
 def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:
@@ -133,15 +289,28 @@ def _logged(can_id: int, data: bytes, remote: bool, rx: bool) -> can.Message:
                        is_extended_id=can_id > 0x7FF, is_rx=rx)
 
 
-def attach_bus_log(network: LockstepNetwork, path: str) -> can.Listener:
-    """Record every frame the network sends and receives (on a bus: every frame) through python-can's
-    Logger, the format chosen by the file's suffix (.asc, .blf, .log, .csv, .trc)."""
-    try:
-        logger = can.Logger(path)
-    except ValueError as exc:
-        raise ValueError(f"--bus-log {path}: {exc}") from None
-    network.log = logger
-    return logger
+def log_sent_frames(network: canopen.Network, log: BusLog) -> None:
+    """Wrap ``network.send_message`` so that every frame it sends is logged after it went out."""
+    send = network.send_message
+
+    def send_and_log(can_id: int, data: bytes, remote: bool = False) -> None:
+        send(can_id, data, remote)
+        log.sent(can_id, data, remote)
+
+    network.send_message = send_and_log  # type: ignore[method-assign]
+
+
+def attach_bus_log(network: canopen.Network, path: str) -> BusLog:
+    """Record every frame the network sends and receives (on a bus: every frame) on one clock
+    (:class:`BusLog`). A lockstep network logs in its own send/pump; a threaded one gets the log as a
+    notifier listener (stopped by :func:`close_threaded`) and its sends wrapped."""
+    log = BusLog(path)
+    if isinstance(network, LockstepNetwork):
+        network.log = log
+    else:
+        network.notifier.add_listener(log)
+        log_sent_frames(network, log)
+    return log
 
 
 def close_threaded(net: canopen.Network) -> None:

@@ -89,6 +89,9 @@ def run_batch(
     prev_u = np.zeros(members)
     e = np.empty(members)
     controller.reset()
+    prepare = getattr(controller, "prepare", None)  # reference preview (controllers/base.py)
+    if prepare is not None:
+        prepare(profile, t)
     for k in range(n):
         pos = s[-2]
         vel = s[-1]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import random
+from typing import Any
 
 from drivectl.driver.cia402 import (
     DRIVE_TRANSITIONS,
@@ -45,6 +46,7 @@ class DriveModel:
         initial_position: float = 0.0,
         quick_stop_option: int = 2,
         power: PowerState = PowerState.SWITCH_ON_DISABLED,
+        io: Any = None,
     ):
         if not (force_noise >= 0 and math.isfinite(force_noise)):
             raise ValueError(f"drive: force_noise: must be >= 0, got {force_noise!r}")
@@ -59,6 +61,8 @@ class DriveModel:
         self.applied = 0.0  # effort acting during the current cycle
         self.syncs = 0
         self._last_cw = 0
+        #: switches and mechanical stops (controllers/homing.py EmulatorIO): 0x60FD and hard stops
+        self.io = io
 
     @property
     def position(self) -> float:
@@ -78,9 +82,22 @@ class DriveModel:
             if self.force_noise:
                 effort += self._rng.gauss(0.0, self.force_noise)
             self.plant.step(self.state, effort)
+            if self.io is not None and self.io.hard_stops is not None:
+                self._hard_stop(self.io.hard_stops)
         self.syncs += 1
         if self.transport_delay:
             self._take(controlword, setpoint)
+
+    def _hard_stop(self, stops: tuple[float, float]) -> None:
+        """A mechanical stop: the carriage does not pass it (an inelastic impact: velocity 0)."""
+        s = self.state.s
+        if s[-2] < stops[0] or s[-2] > stops[1]:
+            s[-2] = stops[0] if s[-2] < stops[0] else stops[1]
+            s[-1] = 0.0
+
+    def digital_inputs(self) -> int:
+        """0x60FD: limit and home switches at the current position (0 without switches)."""
+        return self.io.inputs(self.position) if self.io is not None else 0
 
     def _take(self, controlword: int, setpoint: float) -> None:
         self._apply_controlword(controlword)

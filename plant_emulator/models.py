@@ -151,6 +151,10 @@ class PlantSpec:
     params: dict[str, float]
     effects: tuple[tuple[str, dict[str, float]], ...] = ()
     source: str = "<memory>"
+    #: what identification found out about this model (``[identified]`` in the file: the well-identified
+    #: combinations such as total_mass and mode_hz with their uncertainties, the poorly identified
+    #: parameters); informational, it changes no dynamics (tools/identify_two_mass.py)
+    identified: dict[str, Any] = field(default_factory=dict)
 
     def with_effect(self, name: str, **params: float) -> PlantSpec:
         """A copy with one more effect (validated now, so errors surface at the call)."""
@@ -185,7 +189,24 @@ class PlantSpec:
         for name, params in self.effects:
             lines += ["", "[[effects]]", f'name = "{name}"']
             lines += [f"{k} = {_toml_float(v)}" for k, v in params.items()]
+        if self.identified:
+            lines += ["", "# what identification found (informational: the dynamics are [params] and [[effects]])",
+                      "[identified]"]
+            tables = {k: v for k, v in self.identified.items() if isinstance(v, dict)}
+            lines += [f"{k} = {_toml_value(v)}" for k, v in self.identified.items() if k not in tables]
+            for tname, table in tables.items():
+                lines += ["", f"[identified.{tname}]"] + [f"{k} = {_toml_value(v)}" for k, v in table.items()]
         return "\n".join(lines) + "\n"
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return _toml_float(v)
 
 
 def _toml_float(v: float) -> str:
@@ -224,9 +245,13 @@ def plant_from_mapping(data: dict[str, Any], source: str, name: str) -> PlantSpe
     """Validate a parsed plant table; every error names ``source`` and the key."""
     from drivectl.plant_emulator.effects import validate_effect
 
-    unknown = set(data) - {"model", "effort_unit", "params", "effects", "name"}
+    unknown = set(data) - {"model", "effort_unit", "params", "effects", "name", "identified"}
     if unknown:
-        raise PlantError(f"{source}: {sorted(unknown)[0]}: unknown key (expected model, effort_unit, params, effects)")
+        raise PlantError(f"{source}: {sorted(unknown)[0]}: unknown key (expected model, effort_unit, params, effects, "
+                         "identified)")
+    identified = data.get("identified", {})
+    if not isinstance(identified, dict):
+        raise PlantError(f"{source}: identified: expected a table [identified]")
     if not isinstance(data.get("name", ""), str):
         raise PlantError(f"{source}: name: expected a string, got {data['name']!r}")
     model = data.get("model")
@@ -273,6 +298,7 @@ def plant_from_mapping(data: dict[str, Any], source: str, name: str) -> PlantSpe
         params=params,
         effects=tuple(effects),
         source=source,
+        identified=dict(identified),
     )
     spec.design()  # effects that cannot combine fail here, at load time
     return spec

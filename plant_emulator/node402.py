@@ -45,6 +45,9 @@ from drivectl.plant_emulator.drive import DriveModel
 from drivectl.plant_emulator.faults import SDO_ABORT_GENERAL, FaultInjector
 from drivectl.plant_emulator.models import Plant
 
+#: CiA 402 digital inputs (bit 0 negative limit, 1 positive limit, 2 home switch)
+DIGITAL_INPUTS = 0x60FD
+
 #: EMCY / 0x603F code of a missed RPDO deadline (CiA 301: RPDO timeout)
 RPDO_TIMEOUT_ERROR = 0x8250
 
@@ -67,6 +70,7 @@ class EmulatedDrive:
         seed: int = 0,
         initial_position: float = 0.0,
         faults: FaultInjector | None = None,
+        io: object = None,
     ):
         if not 1 <= node_id <= 127:
             raise ValueError(f"emulated drive: node id must be 1..127, got {node_id}")
@@ -86,7 +90,7 @@ class EmulatedDrive:
         self.encoder = Encoder(resolution)
         self.scale = EffortScale(rated_effort)
         self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
-                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION))
+                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION), io=io)
         self.node.data_store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", self.scale.rated_thousandths)
         # one serial number per emulated drive (the EDS default would make every drive look alike)
         self.node.data_store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", node_id)
@@ -211,6 +215,8 @@ class EmulatedDrive:
             return d.error_code
         if index == cia402.MODES_OF_OPERATION_DISPLAY:
             return self.mode
+        if index == DIGITAL_INPUTS:  # switches (session homing: controllers/homing.py)
+            return d.digital_inputs()
         return None
 
     def statusword(self) -> int:

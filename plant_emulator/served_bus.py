@@ -4,10 +4,16 @@ the client transmits; python-can's ``recv`` takes them from that queue."""
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 
 import can
+
+log = logging.getLogger(__name__)
+
+#: frames a client may have sent that the emulator has not read yet (10 s of a busy 1 kHz two-axis bus)
+RX_QUEUE_FRAMES = 65536
 
 
 class _Shutdown:
@@ -26,10 +32,21 @@ class ServedBus(can.BusABC):
 
     def _init_io(self) -> None:
         # queue.Queue, not SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) can block for ever when a
-        # signal interrupts it just before its deadline
-        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue()
+        # signal interrupts it just before its deadline. Bounded: a client that floods faster than the
+        # emulator reads loses frames (counted), it does not grow memory.
+        self._rx: queue.Queue[can.Message | _Shutdown] = queue.Queue(maxsize=RX_QUEUE_FRAMES)
+        self.rx_overruns = 0
         self._stopping = False
         self._thread: threading.Thread | None = None
+
+    def _put_rx(self, msg: can.Message) -> None:
+        """Queue a frame the client transmitted (I/O thread); dropped and counted when the queue is full."""
+        try:
+            self._rx.put_nowait(msg)
+        except queue.Full:
+            self.rx_overruns += 1
+            if self.rx_overruns == 1:
+                log.warning("%s: receive queue full (%d frames): frames dropped", self.label, RX_QUEUE_FRAMES)
 
     def _start_io(self, target: object, name: str) -> None:
         self._thread = threading.Thread(target=target, name=name, daemon=True)
@@ -57,7 +74,15 @@ class ServedBus(can.BusABC):
         self._wake()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        self._rx.put(_Shutdown())
+        while True:  # the sentinel must get in, also into a full queue
+            try:
+                self._rx.put_nowait(_Shutdown())
+                break
+            except queue.Full:
+                try:
+                    self._rx.get_nowait()
+                except queue.Empty:
+                    pass
         self._close_io()
 
     def _wake(self) -> None:

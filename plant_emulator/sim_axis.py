@@ -36,6 +36,7 @@ class SimAxis:
         seed: int = 0,
         initial_position: float = 0.0,
         enabled: bool = False,
+        io: object = None,
     ):
         self.name = name
         self.plant = plant
@@ -45,7 +46,7 @@ class SimAxis:
         self.effort_scale = effort_scale
         power = PowerState.OPERATION_ENABLED if enabled else PowerState.SWITCH_ON_DISABLED
         self.drive = DriveModel(plant, transport_delay=transport_delay, force_noise=force_noise, seed=seed,
-                                initial_position=initial_position, power=power)
+                                initial_position=initial_position, power=power, io=io)
         self.master = MasterStateMachine(power)
         self._controlword = self.master.controlword(power)  # chosen from the last statusword
         self._sent_controlword = self._controlword if enabled else 0  # what the last "RPDO" carried
@@ -63,6 +64,15 @@ class SimAxis:
     def statusword(self) -> int:
         power = self.drive.power
         return encode_statusword(power, follows=power is PowerState.OPERATION_ENABLED)
+
+    def read_digital_inputs(self) -> int:
+        """0x60FD of the drive (its switches)."""
+        return self.drive.digital_inputs()
+
+    @property
+    def torque_actual(self) -> float:
+        """0x6077: the effort the drive applies now."""
+        return self.drive.applied
 
     def read_error_code(self) -> int:
         """0x603F of the drive."""

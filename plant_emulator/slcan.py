@@ -383,7 +383,7 @@ class SlcanAdapterBus(ServedBus):
         if ok:
             assert msg is not None
             msg.channel = self.tty_path
-            self._rx.put(msg)
+            self._put_rx(msg)
         if not ok:
             self._reply(_ERROR)
         elif self.ack_frames:

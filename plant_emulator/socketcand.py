@@ -22,12 +22,22 @@ and socketcand's ``state_nobus.c``/``state_raw.c``/``socketcand.c``:
   make the client's ``int(parts[0], 16)`` raise inside its ``recv``, so in raw mode protocol errors are
   logged here, never answered.
 
-Served: one client at a time. A background thread accepts, does the handshake and reads; frames the
-client sends are queued for ``_recv_internal``. A connection arriving while a client is served waits
-up to ``busy_timeout`` for it to leave (a client that reconnects right after its shutdown may be seen
-before the old connection's EOF), then is told ``< error ... >`` and closed. After a disconnect the
-server accepts the next client. Frames sent while no client is in raw mode are dropped, as a bus that
-nobody listens to would.
+Served: several clients at once, as socketcand serves each its own raw socket on one bus: a frame the
+emulator sends reaches every client in raw mode, and a frame a client sends reaches the emulator and every
+other client in raw mode (not itself: socketcand's sockets do not receive their own frames). One background
+thread accepts, does the handshakes and reads; frames clients send are queued (bounded) for
+``_recv_internal``. Nothing one client does can block another or grow memory without bound:
+
+* each client's output is a bounded buffer (``_MAX_PENDING`` bytes): a client that stops reading loses
+  frames (counted in :attr:`overruns`, logged once per client), the others do not wait for it;
+* a connection that has not reached raw mode within ``handshake_timeout`` is told ``< error ... >`` and
+  closed (an idle ``nc`` held the only slot for ever when one client was served at a time);
+* a client in raw mode that took none of the frames waiting for it for ``idle_timeout`` seconds (its
+  kernel buffers full, then its own queue) is dead or hung: it is closed (None: never). A client on a
+  quiet bus is not idle in this sense and stays: a resident master between runs sends nothing for minutes;
+* at most ``max_clients`` connections at once; the next is told ``< error too many clients >``.
+
+Frames sent while no client is in raw mode are dropped, as a bus that nobody listens to would.
 """
 
 from __future__ import annotations
@@ -59,12 +69,15 @@ _CANFD_ESI = 0x02
 class _Client:
     sock: socket.socket
     peer: str
+    since: float  # monotonic time of the connection: the handshake deadline counts from it
     state: str = "nobus"  # socketcand's STATE_NO_BUS -> "bcm" after open -> "raw" after rawmode
     inbuf: str = ""
     out: bytearray = field(default_factory=bytearray)
     hold_until: float | None = None  # monotonic deadline of the raw-mode hold-off, None when released
     held: list[bytes] = field(default_factory=list)
     closing: bool = False  # close once `out` is flushed (after an error answer)
+    waiting_since: float | None = None  # monotonic time since when `out` waits and the client took none of it
+    dropped: int = 0  # frames lost because it did not read
 
 
 class SocketcandServerBus(ServedBus):
@@ -73,6 +86,7 @@ class SocketcandServerBus(ServedBus):
     ``channel``: the bus name clients must open; None accepts any name (python-can's client always sends
     one). ``raw_hold_off``: after answering ``< rawmode >``, frames for the client are held until it
     sends something or this many seconds pass, so no frame shares a TCP read with that ``< ok >``.
+    ``max_clients``, ``handshake_timeout``, ``idle_timeout``: see the module's docstring.
     """
 
     label = "socketcand server"
@@ -83,19 +97,25 @@ class SocketcandServerBus(ServedBus):
         *,
         channel: str | None = None,
         raw_hold_off: float = 0.25,
-        busy_timeout: float = 2.0,
+        max_clients: int = 8,
+        handshake_timeout: float = 5.0,
+        idle_timeout: float | None = 30.0,
         can_filters: can.typechecking.CanFilters | None = None,
         **kwargs: Any,
     ) -> None:
+        if not 0 <= port <= 65535:
+            raise ValueError(f"socketcand server: port {port} is not a TCP port (0..65535)")
         self._channel_name = channel
         self.raw_hold_off = raw_hold_off
-        self.busy_timeout = busy_timeout
+        self.max_clients = max_clients
+        self.handshake_timeout = handshake_timeout
+        self.idle_timeout = idle_timeout
         self._listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
             # a fixed port can be rebound at once after the emulator restarts (TIME_WAIT)
             self._listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             self._listener.bind((HOST, port))
-            self._listener.listen(4)
+            self._listener.listen(8)
             self._listener.setblocking(False)
         except BaseException:
             self._listener.close()
@@ -103,12 +123,11 @@ class SocketcandServerBus(ServedBus):
         self.port: int = self._listener.getsockname()[1]
         self.channel_info = f"socketcand server on {HOST}:{self.port}"
         self.clients_served = 0  # clients that reached raw mode, for diagnostics and tests
-        self.overruns = 0
+        self.overruns = 0  # frames dropped for clients that did not read them
 
-        self._lock = threading.Lock()  # guards _client (its out/held/hold_until) and every socket write
+        self._lock = threading.Lock()  # guards _clients and each client's out/held/hold_until, every socket write
         self._client_ready = threading.Condition(self._lock)
-        self._client: _Client | None = None
-        self._waiting: tuple[socket.socket, float] | None = None
+        self._clients: list[_Client] = []  # replaced (never mutated) under _lock, so it can be iterated freely
         self._init_io()
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
@@ -125,56 +144,58 @@ class SocketcandServerBus(ServedBus):
         return host, port
 
     @property
-    def is_client_connected(self) -> bool:
-        """True while a client is in raw mode (frames sent now reach it)."""
-        with self._lock:
-            return self._client is not None and self._client.state == "raw"
+    def raw_clients(self) -> int:
+        """How many clients are in raw mode (frames sent now reach them)."""
+        return sum(1 for c in self._clients if c.state == "raw" and not c.closing)
 
-    def wait_for_client(self, timeout: float | None = None) -> bool:
-        """Block until a client is in raw mode; False on timeout."""
+    @property
+    def is_client_connected(self) -> bool:
+        """True while at least one client is in raw mode."""
+        return self.raw_clients > 0
+
+    def wait_for_client(self, timeout: float | None = None, count: int = 1) -> bool:
+        """Block until ``count`` clients are in raw mode; False on timeout."""
         with self._client_ready:
-            return self._client_ready.wait_for(
-                lambda: self._client is not None and self._client.state == "raw", timeout=timeout
-            )
+            return self._client_ready.wait_for(lambda: self.raw_clients >= count, timeout=timeout)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        """Hand ``msg`` to the client in raw mode; dropped without one. Never blocks (``timeout`` unused):
-        bytes the socket does not take now are flushed by the server thread."""
+        """Hand ``msg`` to every client in raw mode; dropped without one. Never blocks (``timeout`` unused):
+        bytes a socket does not take now are flushed by the server thread."""
         self._check_open()
         line = _format(msg)
         if line is None:
             return
         with self._lock:
-            client = self._client
-            if client is None or client.state != "raw" or client.closing:
-                return
-            if client.hold_until is not None:
-                if time.monotonic() < client.hold_until:
-                    if len(client.held) < _MAX_HELD:
-                        client.held.append(line)
-                    else:
-                        self.overruns += 1
-                    return
-                self._release_hold_locked(client)
-            self._queue_locked(client, line)
+            for client in self._clients:
+                self._deliver_locked(client, line)
 
     def _close_io(self) -> None:
         with self._lock:
-            if self._client is not None:
-                self._client.sock.close()
-                self._client = None
-        if self._waiting is not None:
-            self._waiting[0].close()
-            self._waiting = None
+            clients, self._clients = self._clients, []
+        for client in clients:
+            client.sock.close()
         self._listener.close()
         self._wake_r.close()
         self._wake_w.close()
 
     # ------------------------------------------------------------------ output (callers hold _lock)
 
+    def _deliver_locked(self, client: _Client, line: bytes) -> None:
+        if client.state != "raw" or client.closing:
+            return
+        if client.hold_until is not None:
+            if time.monotonic() < client.hold_until:
+                if len(client.held) < _MAX_HELD:
+                    client.held.append(line)
+                else:
+                    self._overrun_locked(client)
+                return
+            self._release_hold_locked(client)
+        self._queue_locked(client, line)
+
     def _queue_locked(self, client: _Client, data: bytes) -> None:
         if len(client.out) + len(data) > _MAX_PENDING:
-            self.overruns += 1
+            self._overrun_locked(client)
             return
         was_idle = not client.out
         client.out += data
@@ -182,16 +203,29 @@ class SocketcandServerBus(ServedBus):
         if client.out and was_idle:
             self._wake()  # the server thread starts waiting for writability
 
+    def _overrun_locked(self, client: _Client) -> None:
+        self.overruns += 1
+        client.dropped += 1
+        if client.dropped == 1:
+            log.warning("socketcand server :%d: client %s does not read: frames for it are dropped (others "
+                        "unaffected)", self.port, client.peer)
+
     def _flush_locked(self, client: _Client) -> None:
+        took = False
         while client.out:
             try:
                 n = client.sock.send(client.out)
             except (BlockingIOError, InterruptedError):
-                return
+                break
             except OSError:
                 client.out.clear()  # peer gone; the server thread sees the EOF/error on its next read
-                return
+                break
             del client.out[:n]
+            took = True
+        if not client.out:
+            client.waiting_since = None
+        elif took or client.waiting_since is None:
+            client.waiting_since = time.monotonic()  # the kernel's buffers are full: it is not reading now
 
     def _release_hold_locked(self, client: _Client) -> None:
         client.hold_until = None
@@ -219,22 +253,30 @@ class SocketcandServerBus(ServedBus):
             if not self._stopping:
                 log.exception("socketcand server: thread died")
 
+    def _deadline(self, client: _Client) -> float | None:
+        """When the server thread must next look at ``client`` without any I/O on it."""
+        if client.closing:
+            return client.since + 2 * self.handshake_timeout  # told an error and not reading it: dropped then
+        if client.state != "raw":
+            return client.since + self.handshake_timeout
+        stalled = client.waiting_since + self.idle_timeout if self.idle_timeout and client.waiting_since else None
+        times = [t for t in (client.hold_until, stalled) if t is not None]
+        return min(times) if times else None
+
     def _serve_once(self) -> None:
-        now = time.monotonic()
-        client = self._client  # only this thread replaces it
+        clients = self._clients  # only this thread adds or removes clients
         rlist: list[socket.socket] = [self._wake_r, self._listener]
         wlist: list[socket.socket] = []
         deadlines: list[float] = []
-        if client is not None:
-            rlist.append(client.sock)
-            with self._lock:
+        with self._lock:
+            for client in clients:
+                rlist.append(client.sock)
                 if client.out:
                     wlist.append(client.sock)
-                if client.hold_until is not None:
-                    deadlines.append(client.hold_until)
-        if self._waiting is not None:
-            deadlines.append(self._waiting[1])
-        timeout = max(0.0, min(deadlines) - now) if deadlines else None
+                deadline = self._deadline(client)
+                if deadline is not None:
+                    deadlines.append(deadline)
+        timeout = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
         readable, writable, _ = select.select(rlist, wlist, [], timeout)
         if self._stopping:
             return
@@ -243,44 +285,42 @@ class SocketcandServerBus(ServedBus):
                 self._wake_r.recv(4096)
             except BlockingIOError:
                 pass
-        if client is not None and client.sock in writable:
-            with self._lock:
-                self._flush_locked(client)
-                if client.closing and not client.out:
-                    self._drop_locked(client, "closed after error")
-        if client is not None and client.sock in readable and self._client is client:
-            self._read_client(client)
+        for client in clients:
+            if client.sock in writable:
+                with self._lock:
+                    self._flush_locked(client)
+                    if client.closing and not client.out:
+                        self._drop_locked(client, "closed after error")
+            if client.sock in readable and client in self._clients:
+                self._read_client(client)
         if self._listener in readable:
             self._accept()
         now = time.monotonic()
-        if self._waiting is not None:
-            if self._client is None:
-                sock, _ = self._waiting
-                self._waiting = None
-                self._start(sock)
-            elif now >= self._waiting[1]:
-                sock, _ = self._waiting
-                self._waiting = None
-                _reject(sock, "< error another client is connected >")
-        client = self._client
-        if client is not None:
-            with self._lock:
+        with self._lock:
+            for client in self._clients:
+                if client.closing:
+                    if now >= client.since + 2 * self.handshake_timeout:
+                        self._drop_locked(client, "did not take its error answer")
+                    continue
+                if client.state != "raw":
+                    if now >= client.since + self.handshake_timeout:
+                        self._close_with_error_locked(client, "< error handshake timeout >",
+                                                      f"no raw mode within {self.handshake_timeout:g} s")
+                    continue
                 if client.hold_until is not None and now >= client.hold_until:
                     self._release_hold_locked(client)
+                if self.idle_timeout and client.waiting_since and now >= client.waiting_since + self.idle_timeout:
+                    self._drop_locked(client, f"took none of its frames for {self.idle_timeout:g} s")
 
     def _accept(self) -> None:
         try:
             sock, addr = self._listener.accept()
         except (BlockingIOError, InterruptedError):
             return
-        if self._client is None:
-            self._start(sock)
-        elif self._waiting is None:
-            self._waiting = (sock, time.monotonic() + self.busy_timeout)
-        else:
-            _reject(sock, "< error another client is connected >")
-
-    def _start(self, sock: socket.socket) -> None:
+        if len(self._clients) >= self.max_clients:
+            log.warning("socketcand server :%d: %s refused: %d clients connected", self.port, addr, self.max_clients)
+            _reject(sock, "< error too many clients >")
+            return
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # as socketcand: small frames, no Nagle
         sock.setblocking(False)
         try:
@@ -289,15 +329,25 @@ class SocketcandServerBus(ServedBus):
         except OSError:
             sock.close()
             return
-        client = _Client(sock=sock, peer=peer)
+        now = time.monotonic()
+        client = _Client(sock=sock, peer=peer, since=now)
         with self._lock:
-            self._client = client
+            self._clients = [*self._clients, client]
         log.info("socketcand server :%d: client %s connected", self.port, peer)
         self._answer(client, "< hi >")
 
+    def _close_with_error_locked(self, client: _Client, text: str, why: str) -> None:
+        client.out.clear()  # the error is the last thing it reads
+        self._queue_locked(client, text.encode("ascii"))
+        client.closing = True
+        if not client.out:
+            self._drop_locked(client, why)
+        else:
+            log.info("socketcand server :%d: closing client %s (%s)", self.port, client.peer, why)
+
     def _drop_locked(self, client: _Client, why: str) -> None:
-        if self._client is client:
-            self._client = None
+        if client in self._clients:
+            self._clients = [c for c in self._clients if c is not client]
         client.sock.close()
         log.info("socketcand server :%d: client %s gone (%s)", self.port, client.peer, why)
 
@@ -317,6 +367,8 @@ class SocketcandServerBus(ServedBus):
             with self._lock:
                 self._drop_locked(client, why)
             return
+        if client.closing:
+            return  # told an error, closing: nothing it says counts any more
         if client.state == "raw" and client.hold_until is not None:
             # the client wrote after reading its raw-mode `< ok >`: frames can no longer share that read
             with self._lock:
@@ -337,7 +389,7 @@ class SocketcandServerBus(ServedBus):
             command = client.inbuf[start : end + 1]
             client.inbuf = client.inbuf[end + 1 :]
             self._command(client, command)
-            if self._client is not client or client.closing:
+            if client not in self._clients or client.closing:
                 return
 
     def _command(self, client: _Client, command: str) -> None:
@@ -347,11 +399,9 @@ class SocketcandServerBus(ServedBus):
             if verb == "open" and len(words) == 2:
                 if self._channel_name is not None and words[1] != self._channel_name:
                     # socketcand: unknown bus -> error, then the connection ends
-                    self._answer(client, "< error could not open bus >")
                     with self._lock:
-                        client.closing = True
-                        if not client.out:
-                            self._drop_locked(client, f"asked for bus {words[1]!r}")
+                        self._close_with_error_locked(client, "< error could not open bus >",
+                                                      f"asked for bus {words[1]!r}")
                     return
                 client.state = "bcm"
                 self._answer(client, "< ok >")
@@ -382,7 +432,13 @@ class SocketcandServerBus(ServedBus):
                 log.warning("socketcand server: syntax error in %r from %s", command, client.peer)  # as socketcand
                 return
             msg.channel = self.channel_info
-            self._rx.put(msg)
+            self._put_rx(msg)
+            line = _format(msg)  # the other clients are on the same bus: they see it too
+            if line is not None and len(self._clients) > 1:
+                with self._lock:
+                    for other in self._clients:
+                        if other is not client:
+                            self._deliver_locked(other, line)
             return
         if client.state == "raw":
             log.warning(

@@ -56,6 +56,7 @@ def test_identify_recovers_the_emulated_axis_and_writes_a_loadable_plant(tmp_pat
     assert spec.params["mass"] == pytest.approx(88.08, rel=0.02)
 
 
-def test_identify_refuses_a_two_mass_axis(capsys):
-    assert main(["identify", "--axis", "z"]) == 2
-    assert "identify fits a rigid axis" in capsys.readouterr().err
+def test_identify_refuses_a_model_it_cannot_fit(tmp_path, capsys):
+    # a two-mass plant believed rigid: the constant-velocity method needs a rigid model in the effort's unit
+    assert main(["identify", "--axis", "z", "--model", "rigid-x", "--out", str(tmp_path)]) == 2
+    assert "effort in N" in capsys.readouterr().err

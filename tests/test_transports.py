@@ -297,21 +297,138 @@ def test_socketcand_client_connects_while_server_keeps_sending(socketcand_server
         thread.join(GUARD)
 
 
-def test_socketcand_second_concurrent_client_is_refused():
-    server = SocketcandServerBus(port=0, busy_timeout=0.2)
-    first = open_socketcand_client(server)
+def raw_mode_socket(server: SocketcandServerBus, **sockopts: int) -> socket.socket:
+    """A bare client through the handshake into raw mode (socket options set before connecting)."""
+    sock = socket.socket()
+    for opt, value in sockopts.items():
+        sock.setsockopt(socket.SOL_SOCKET, getattr(socket, opt), value)
+    sock.settimeout(GUARD)
+    sock.connect(("127.0.0.1", server.port))
+    for command in (b"", b"< open can0 >", b"< rawmode >"):
+        if command:
+            sock.sendall(command)
+        reply = b""
+        while not reply.endswith(b">"):
+            chunk = sock.recv(1)
+            assert chunk, "server closed the connection"
+            reply += chunk
+        assert reply == (b"< hi >" if not command else b"< ok >"), reply
+    return sock
+
+
+def read_until_closed(sock: socket.socket) -> bytes:
+    reply = b""
+    while chunk := sock.recv(4096):  # the server closes it; GUARD (the socket's timeout) only if broken
+        reply += chunk
+    return reply
+
+
+def test_socketcand_serves_several_clients_as_one_bus():
+    """Every client in raw mode gets what the emulator sends; a client's frame reaches the emulator and the
+    other clients, not itself (socketcand's raw sockets do not receive their own frames)."""
+    server = SocketcandServerBus(port=0)
+    a, b = open_socketcand_client(server), open_socketcand_client(server)
     try:
-        # a bare socket: python-can's client raises CanError("Expected '< hi >' got: '< error ...'") here
-        # but leaves its socket unclosed
-        with socket.create_connection(("127.0.0.1", server.port), timeout=GUARD) as second:
-            reply = b""
-            while chunk := second.recv(256):
-                reply += chunk
-        assert reply == b"< error another client is connected >"
-        first.send(can.Message(arbitration_id=0x101, data=b"\x01", is_extended_id=False))
-        assert_frame(recv(server), 0x101, b"\x01")  # the first client is unaffected
+        assert server.wait_for_client(GUARD, count=2)
+        server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+        assert_frame(recv(a), 0x181, b"\x01")
+        assert_frame(recv(b), 0x181, b"\x01")
+        a.send(can.Message(arbitration_id=0x201, data=b"\x0f\x00", is_extended_id=False))
+        assert_frame(recv(server), 0x201, b"\x0f\x00")
+        assert_frame(recv(b), 0x201, b"\x0f\x00")
+        b.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        assert_frame(recv(server), 0x080, b"")
+        assert_frame(recv(a), 0x080, b"")  # a's own 0x201 never came back to it: this is the next frame
+        assert server.clients_served == 2
     finally:
-        first.shutdown()
+        a.shutdown()
+        b.shutdown()
+        server.shutdown()
+
+
+def test_socketcand_idle_connection_does_not_hold_the_server():
+    """An idle TCP client (nc, a stuck tool) once held the only slot for ever, so `status` died with a
+    traceback. Now a master is served beside it, and the idle one is closed after the handshake timeout."""
+    server = SocketcandServerBus(port=0, handshake_timeout=0.3)
+    idle = socket.create_connection(("127.0.0.1", server.port), timeout=GUARD)
+    try:
+        master = open_socketcand_client(server)
+        try:
+            master.send(can.Message(arbitration_id=0x101, data=b"\x01", is_extended_id=False))
+            assert_frame(recv(server), 0x101, b"\x01")
+        finally:
+            master.shutdown()
+        assert read_until_closed(idle) == b"< hi >< error handshake timeout >"
+    finally:
+        idle.close()
+        server.shutdown()
+
+
+def test_socketcand_clients_are_capped_and_a_client_that_stops_reading_is_closed():
+    """At most max_clients connections; a raw client on a quiet bus stays (a resident master between
+    runs); one that takes none of the frames waiting for it for idle_timeout is closed (dead or hung)."""
+    server = SocketcandServerBus(port=0, idle_timeout=0.3, max_clients=2, raw_hold_off=0)
+    quiet = raw_mode_socket(server)
+    stalled = raw_mode_socket(server, SO_RCVBUF=4096)
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=GUARD) as third:
+            assert read_until_closed(third) == b"< error too many clients >"
+        time.sleep(0.5)  # longer than idle_timeout on a quiet bus: nobody is closed
+        assert server.raw_clients == 2
+        port = stalled.getsockname()[1]
+        mine = next(c for c in server._clients if c.peer.endswith(f":{port}"))
+        mine.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        quiet.close()  # (it would read; here it leaves)
+        frames = 0
+        while not mine.dropped and frames < 100_000:  # until its kernel buffers and then its queue are full
+            server.send(can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False))
+            frames += 1
+        assert mine.dropped, "the stalled client's queue never filled"
+        deadline = time.monotonic() + GUARD
+        while mine in server._clients and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert mine not in server._clients
+        master = open_socketcand_client(server)  # the slots are free again
+        master.shutdown()
+    finally:
+        quiet.close()
+        stalled.close()
+        server.shutdown()
+
+
+def test_socketcand_client_that_stops_reading_loses_frames_alone():
+    """Each client's queue is bounded: one that stops reading overflows its own buffer (frames dropped and
+    counted), while the others get every frame, in order, and the emulator never blocks."""
+    server = SocketcandServerBus(port=0, raw_hold_off=0)
+    stalled = raw_mode_socket(server, SO_RCVBUF=4096)
+    good = open_socketcand_client(server)
+    n = 20000
+    got: list[int] = []
+
+    def reader() -> None:
+        while len(got) < n:
+            msg = good.recv(GUARD)
+            if msg is None:
+                return
+            got.append(int.from_bytes(msg.data, "little"))
+
+    try:
+        assert server.wait_for_client(GUARD, count=2)
+        port = stalled.getsockname()[1]
+        mine = next(c for c in server._clients if c.peer.endswith(f":{port}"))
+        mine.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)  # no autotuning: overflow at once
+        thread = threading.Thread(target=reader)
+        thread.start()
+        for i in range(n):
+            server.send(can.Message(arbitration_id=0x181, data=i.to_bytes(4, "little"), is_extended_id=False))
+        thread.join(3 * GUARD)
+        assert got == list(range(n))
+        others = [c for c in server._clients if c is not mine]
+        assert mine.dropped > 0 and server.overruns == mine.dropped and [c.dropped for c in others] == [0]
+        assert len(mine.out) <= 256 * 1024  # its queue stayed within its bound
+    finally:
+        stalled.close()
+        good.shutdown()
         server.shutdown()
 
 
@@ -453,3 +570,32 @@ def test_shutdown_wakes_a_blocked_recv_and_stops_the_io_thread(make, label):
     with pytest.raises(can.CanOperationError, match=f"{label} is shut down"):
         bus.send(can.Message(arbitration_id=0x123, data=b"\x01", is_extended_id=False))
     bus.shutdown()
+
+
+def test_served_bus_receive_queue_is_bounded_and_shutdown_still_wakes(monkeypatch):
+    """A client flooding faster than the emulator reads loses frames (counted), it does not grow memory;
+    shutting down with the queue full still wakes a reader."""
+    from drivectl.plant_emulator import served_bus
+
+    monkeypatch.setattr(served_bus, "RX_QUEUE_FRAMES", 10)
+    server = SocketcandServerBus(port=0)
+    client = open_socketcand_client(server)
+    try:
+        for i in range(50):
+            client.send(can.Message(arbitration_id=0x100 + i, data=b"", is_extended_id=False))
+        deadline = time.monotonic() + GUARD
+        while server._rx.qsize() + server.rx_overruns < 50 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert (server._rx.qsize(), server.rx_overruns) == (10, 40)
+        assert [recv(server).arbitration_id for _ in range(10)] == list(range(0x100, 0x10A))  # the first kept
+        for i in range(20):  # full again: the shutdown's sentinel must still get in
+            client.send(can.Message(arbitration_id=0x200 + i, data=b"", is_extended_id=False))
+        while server._rx.qsize() < 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert server._rx.full()
+    finally:
+        client.shutdown()
+        server.shutdown()
+    with pytest.raises(can.CanOperationError, match="shut down"):
+        for _ in range(11):  # what was queued, then the sentinel
+            server.recv(GUARD)

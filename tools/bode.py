@@ -127,6 +127,9 @@ class ExcitedController(Controller):
         self.inner.reset()
         self._k = 0
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        self.inner.prepare(profile, times)  # the inner controller's reference preview
+
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k
         self._k += 1
@@ -382,15 +385,22 @@ def measure_frf(
     amplitude: float | None = None,
     fmin: float = DEFAULT_FMIN,
     fmax: float = DEFAULT_FMAX,
+    model: str | None = None,
+    plant: str | None = None,
+    controller: Controller | None = None,
+    noise: float = 0.0,
+    seed: int = 0,
 ) -> BodeResult:
     """Hold ``axis_name`` under its configured controller, add a multisine of peak ``amplitude``
     (effort unit; default 5 % of max_effort) on [fmin, fmax] Hz to the effort for ``seconds``, and
     estimate the FRF effort -> position beside the model's. ``sim`` runs on SimAxis, else on the
     configured bus (the emulated drives on the virtual bus by default). A run stopped by a limit
-    returns a result with ``ok`` False (and no FRF: arrays empty)."""
+    returns a result with ``ok`` False (and no FRF: arrays empty). ``model`` (``--model``) is the plant
+    the controller believes and the overlay shows; ``plant`` (``--plant``) what the emulated drive
+    plays (see :func:`~drivectl.tools.machine.model_specs`); ``controller`` replaces the axis's."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, run_channels
-    from drivectl.tools.machine import open_machine, plant_specs
+    from drivectl.tools.machine import model_specs, open_machine, plant_specs
 
     ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
     dt = cfg.cycle_s
@@ -401,7 +411,8 @@ def measure_frf(
         raise BodeError(f"bode: band --fmin {fmin:g} .. --fmax {fmax:g} Hz: need 0 < fmin < fmax <= {nyq:g} Hz "
                         "(Nyquist)")
     max_eff = ac.limits.max_effort
-    spec = plant_specs(cfg, [axis_name])[axis_name]
+    plants = plant_specs(cfg, [axis_name], plant)
+    spec = model_specs(cfg, [axis_name], model, plant, plants=plants)[axis_name]
     if amplitude is None:
         amplitude = default_amplitude(spec, max_eff, ac.rated_effort)
     # the excitation alone must leave the controller most of the effort range, else clipping (a
@@ -414,14 +425,15 @@ def measure_frf(
     one, _ = multisine(n, dt, fmin, fmax, amplitude)
     exc = np.tile(one, periods)
 
-    inner = make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
-                            source=f"{cfg.source}: axes.{axis_name}.controller_settings")
+    inner = controller or make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
+                                          source=f"{cfg.source}: axes.{axis_name}.controller_settings")
     ctrl = ExcitedController(inner, exc)
     hold = hold_position(cfg, axis_name)
     profile = Hold(hold, periods * PERIOD_S)
-    machine = open_machine(cfg, [axis_name], sim=sim, start={axis_name: hold})
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold}, noise=noise, seed=seed)
     try:
-        meta = {"plant": spec.name, "profile": "hold + multisine on the effort", "bus": machine.bus,
+        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": "hold + multisine on the effort",
+                "bus": machine.bus,
                 "config": cfg.source}
         # periods * n rows exactly: the row count is duration / dt + 1, so one dt short
         res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
@@ -542,6 +554,11 @@ def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true",
                    help='print exactly one JSON object {"axis", "mode_hz", "model_mode_hz", "error_pct"}')
     p.add_argument("--sim", action="store_true", help="run on SimAxis (no bus)")
+    p.add_argument("--model", metavar="NAME|FILE",
+                   help="the plant the controller believes and the overlay shows (default: the axis's model, else "
+                   "its plant)")
+    p.add_argument("--plant", metavar="NAME|FILE", help="override what the emulated drive plays (default: the axis's "
+                   "plant)")
     p.add_argument("--seconds", type=float, default=20.0, help="excitation length in s (default 20)")
     p.add_argument("--amplitude", type=float, metavar="EFFORT",
                    help="peak of the multisine in the effort unit (default 5 %% of the axis's max_effort)")
@@ -554,22 +571,35 @@ def cmd_bode(args: argparse.Namespace) -> int:
     """0 done; 1 the loop was stopped by a limit or the axis failed; 2 bad input (one line on stderr)."""
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
-    from drivectl.driver.axis import AxisError
+    from drivectl.driver.axis import AxisConfigError, AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.tools.config import load_config
 
     try:
+        from drivectl.tools.trace import TraceError
+        from drivectl.tools.trace_stream import check_output_folder
+
         cfg = load_config(getattr(args, "config", None))
+        try:  # before the axis moves: the response goes there after the measurement
+            check_output_folder(args.out, "--out", 5_000_000)
+        except TraceError as exc:
+            raise ConfigError(str(exc)) from None
         res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
-                          fmin=args.fmin, fmax=args.fmax)
-    except (BodeError, ConfigError, PlantError, SettingsError, LimitError) as exc:
+                          fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant)
+    except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     except AxisError as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 1
     if not res.ok:
-        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; axis quick-stopped and disabled, "
+        from drivectl.controllers.safe_stop import end_state_line
+
+        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+        after = m.get("safe_after_cycles", "unknown")
+        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                               {res.axis: None if after == "unknown" else int(after)})
+        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
               "no response written", file=sys.stderr)
         return 1
     write_bode(res, args.out)

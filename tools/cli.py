@@ -1,10 +1,16 @@
 """The `drivectl` command line.
 
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
-bus/drive refused a command; 2 bad input (one line on stderr naming the file and the key); 3 a fault
-ended the run (drive fault, lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible
-position; axis stopped, trace kept with the fault in its metadata); 130 / 143 interrupted by SIGINT /
-SIGTERM (the axis quick-stopped and disabled, the trace kept).
+bus/drive refused a command, or the trace could not be written whole (disk full after the checks);
+2 bad input (one line on stderr naming the file and the key); 3 a fault ended the run (drive fault,
+lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position, a rogue RPDO or SYNC
+producer, a foreign NMT command; axis stopped, trace kept with the fault in its metadata), or a
+completed run passed a ``[checks]`` fault threshold, or a stop the drive did not confirm (the line says
+the axis may still be powered and what was tried); 4 completed with warnings (missed deadlines,
+clipped or extrapolated cycles past a ``[checks]`` warning threshold: a line each); 130 / 143
+interrupted by SIGINT / SIGTERM (quick stop, the axes' end state as the drives reported it; the trace
+kept). Every word about an axis's end state comes from the drive's own statusword after the stop
+(controllers/safe_stop.py).
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from drivectl import __version__
 if TYPE_CHECKING:
     from drivectl.controllers.interrupt import StopRequest
 
-EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT, EXIT_WARNINGS = 0, 1, 2, 3, 4
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,7 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "synchronous torque, lockstep), write the trace (format v1) and a PNG, and print a "
                        "summary. --sim runs the same plant on SimAxis, with no bus: same trace, bit for bit.")
     t.add_argument("--axis", default="x", help="axis name, or several joined by commas (x,y)")
-    t.add_argument("--plant", help="override the axis's plant (built-in name or TOML file)")
+    t.add_argument("--plant", help="override the axis's plant: what the emulated drive plays (built-in name or TOML "
+                   "file; also the controller's model unless --model or the axis's model key says otherwise)")
+    t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
+                   "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
     t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
@@ -56,12 +65,18 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(t)
     t.add_argument("--sim", action="store_true",
                    help="run on SimAxis (the plant with no bus) instead of the emulated CANopen drive")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
                    "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+    from drivectl.tools.learn import add_learning_arguments
+
+    add_learning_arguments(t)
 
     from drivectl.tools.bode import add_bode_parser
     from drivectl.tools.commission import add_commission_parsers
@@ -75,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.shell import add_shell_parser
+
+    add_shell_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -117,10 +135,11 @@ def _dispatch(args: argparse.Namespace) -> int:
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError
     from drivectl.tools.identify import IdentificationError
+    from drivectl.tools.learn import LearnedFileError
     from drivectl.tools.trace import TraceError
 
     bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError)
+                 FaultSpecError, LearnedFileError)
     try:
         if args.command == "trace":
             return cmd_trace(args)
@@ -148,6 +167,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "shell":
+            from drivectl.tools.shell import cmd_shell
+
+            return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:
@@ -174,17 +197,23 @@ def cmd_trace(args: argparse.Namespace) -> int:
 
 
 def _trace(args: argparse.Namespace, request: StopRequest) -> int:
+    import functools
+
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, StopReason, check_run_length, run_channels
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
-    from drivectl.tools.config import ConfigError, load_config
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools import checks
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine, plant_specs
     from drivectl.tools.metrics import summarize
     from drivectl.tools.plot import plot_traces
 
     cfg = load_config(args.config)
-    names = [a.strip() for a in args.axis.split(",") if a.strip()]
+    names = checks.parse_axes(args.axis)
+    checks.check_number("--noise", args.noise, lo=0.0, unit="effort unit")
+    checks.check_seed(args.seed)
+    checks.check_number("--duration", args.duration, lo=0.0, lo_open=True, unit="s")
     effects = [parse_effect(text) for text in args.effect]
     faults = [parse_fault(text) for text in args.fault] if args.fault else None
     for f in faults or ():
@@ -196,15 +225,42 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
         check_run_length(args.duration, cfg.cycle_s, "--duration")
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
+    models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
+    builders = {}  # fresh instances of the same controllers (the learning measures the loop with them)
     for name in names:
         ac = cfg.axis(name)
         ctrl_name = args.controller or ac.controller
-        settings = ac.controller_settings if ctrl_name == ac.controller else {}
-        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=specs[name], axis=name,
+        settings = ac.controller_settings
+        if ctrl_name != ac.controller:  # keep what the other controller also takes; say what is dropped
+            settings, dropped = checks.carry_settings(settings, ctrl_name)
+            if dropped:
+                print(f"trace: --controller {ctrl_name}: axes.{name}.controller_settings {', '.join(dropped)} "
+                      f"dropped (not {ctrl_name} settings){'; kept ' + ', '.join(settings) if settings else ''}",
+                      file=sys.stderr)
+        controllers[name] = make_controller(ctrl_name, cfg.cycle_s, settings, plant=models[name], axis=name,
                                             source=f"{cfg.source}: axes.{name}.controller_settings")
-    if args.bus_log and Path(args.bus_log).suffix.lower() not in (".asc", ".blf", ".log", ".csv", ".trc", ".gz"):
-        raise ConfigError(f"--bus-log {args.bus_log}: unknown log format (use .asc, .blf, .log, .csv or .trc)")
+        builders[name] = functools.partial(make_controller, ctrl_name, cfg.cycle_s, settings, plant=models[name],
+                                           axis=name)
+    from drivectl.tools.learn import prepare_repeated, run_repeated
+
+    plan = prepare_repeated(args, cfg, names, profiles, specs)  # --repeat / --learn / --learned, checked now
+    checks.check_bus_log(args.bus_log)
+    # the outputs last (this creates --out): a folder we can write, with room for what the run records
+    if args.duration is not None:
+        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration")
+    else:  # as the run will name it
+        from drivectl.profiles.base import profile_name
+
+        longest = max(profiles.values(), key=lambda p: p.duration)
+        source = getattr(longest, "source", None)
+        cycles = check_run_length(longest.duration, cfg.cycle_s,
+                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
+    checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
+    if plan is not None:  # the repetitions (tools/learn.py)
+        return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
+                            models=models, controllers=controllers, builders=builders, effects=effects,
+                            faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
                            bus_log=args.bus_log, faults=faults)
@@ -212,8 +268,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "profile": args.profile or ac.profile, "bus": machine.bus,
-                    "config": cfg.source}
+            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
+                    "bus": machine.bus, "config": cfg.source}
             if effects:
                 meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
             if faults:
@@ -227,21 +283,56 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         machine.close()
         raise
 
+    # a paced run is not lockstep, whatever the bus's description says
+    bus_text = machine.bus.replace("lockstep", "paced on the wall clock") if args.paced else machine.bus
+    if args.paced:
+        for ch in channels:
+            ch.meta["bus"] = bus_text
     try:
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
-        result = run_channels(channels, duration=args.duration, on_start=started, pace=args.paced,
-                              progress=not args.quiet and sys.stderr.isatty(), stop_request=request)
+        from drivectl.controllers.servo import plan_run
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        # an axis away from its profile's start is moved there first, shown and agreed (tools/approach.py)
+        approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
+        if approach is not None:
+            consent(args.approach, moves)
+        # before the approach (the run follows it within a cycle); recorded only as it streams to --out:
+        # the run's memory does not grow with its length (the summary reads the file back)
+        plan = plan_run(channels, args.duration, keep=False)
+        result = None
+        if approach is not None:
+            result = run_channels(approach, disable_at_end=False, pace=args.paced, stop_request=request)
+        if result is None or result.ok:
+            # the traces stream to --out as the run goes (a killed run leaves its .partial files)
+            result = run_channels(plan, on_start=started, pace=args.paced,
+                                  progress=not args.quiet and sys.stderr.isatty(), stop_request=request,
+                                  stream=Path(args.out))
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         machine.close()
+    from drivectl.controllers.run_checks import apply, assess
+    from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
+
+    checked = assess(result.traces, cfg.checks) if result.ok else None
+    if checked is not None:  # the verdict into the traces (the streamed files' trailers too)
+        apply(result.traces, checked, result.paths)
     out = Path(args.out)
+    clean_stale(out)
     written = []
-    for name, tr in result.traces.items():
-        written.append(tr.write(out / f"{name}.csv"))
+    unwritten = []  # the disk filled or went away after the checks: the run is reported all the same
+    for name, tr in result.traces.items():  # a new file per run; AXIS.csv names the latest (docs/trace-format.md)
+        if name in result.paths:  # streamed during the run
+            written.append(result.paths[name])
+            continue
+        try:  # the stream failed (disk full, folder gone): once more, whole
+            written.append(write_trace(out, tr))
+        except (TraceWriteError, OSError) as exc:
+            unwritten.append(str(exc) if isinstance(exc, TraceWriteError) else f"{out}: cannot write the trace: {exc}")
     if not args.no_plot and result.cycles > 1:
         written.append(plot_traces(result.traces, out / f"{'-'.join(names)}.png",
                                    title=f"drivectl trace: {', '.join(names)}"))
@@ -261,23 +352,40 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         written.append(Path(args.bus_log))
     for p in written:
         print(f"wrote {p}")
+    for line in unwritten:
+        print(f"drivectl: {line}", file=sys.stderr)
+    # every word about the axes' end state comes from what the drives reported after the stop
+    from drivectl.controllers.safe_stop import all_confirmed, end_state_line
+
+    f = result.fault
+    ended = f"({end_state_line(f.safe_state, f.safe_after)})" if f is not None else ""
     if result.stop is StopReason.INTERRUPTED:
         name = request.name or "SIGINT"
-        how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
+        how = f"quick stop {ended}" if result.enabled else "before the axes were enabled: nothing moved"
         print(f"drivectl: interrupted by {name} after {result.cycles} cycles; {how}, trace kept", file=sys.stderr)
         return 128 + request.signum if request.signum else 130
-    if result.fault is not None and result.stop is StopReason.FAULT:
-        f = result.fault
-        state = ", ".join(f"{n} {s}" + (f" after {f.safe_after[n]} cycle(s)" if f.safe_after.get(n) is not None
-                                        else " to the master (no answer: the drive's own watchdogs stop it)")
-                          for n, s in f.safe_state.items())
-        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped ({state}), trace kept",
+    if f is not None and result.stop is StopReason.FAULT:
+        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped {ended}, trace kept",
               file=sys.stderr)
         return EXIT_FAULT
+    if checked is not None and checked.faults:
+        for line in checked.faults:
+            print(f"drivectl: fault: run check: {line}", file=sys.stderr)
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        return EXIT_FAULT
+    if checked is not None and checked.warnings:
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        print("drivectl: completed with warnings", file=sys.stderr)
+        return EXIT_WARNINGS
     if not result.ok:
-        print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
+        if f is not None and not all_confirmed(f.safe_after):  # a limit stop the drive did not confirm
+            print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
+            return EXIT_FAULT
+        print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
         return EXIT_STOPPED
-    return EXIT_OK
+    return EXIT_STOPPED if unwritten else EXIT_OK
 
 
 def cmd_plot(args: argparse.Namespace) -> int:

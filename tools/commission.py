@@ -46,11 +46,28 @@ def add_commission_parsers(sub: Any) -> None:
         p = sub.add_parser(name, help=what)
         p.add_argument("--axis", default="x")
 
-    i = sub.add_parser("identify", help="identify mass and friction of a rigid axis (PID + DOB runs)")
+    i = sub.add_parser("identify", help="identify an axis's model: mass and friction of a rigid axis (PID + DOB "
+                       "constant-velocity runs), masses, stiffness and damping of a two-mass one (closed-loop FRF fit)")
     i.add_argument("--axis", default="x")
-    i.add_argument("--out", default="traces", metavar="DIR", help="where the identified plant TOML goes")
+    i.add_argument("--out", default="traces", metavar="DIR", help="where the identified model TOML goes")
     i.add_argument("--sim", action="store_true", help="SimAxis instead of the emulated drive on the bus")
     i.add_argument("--json", action="store_true")
+    from drivectl.tools.approach import add_approach_flags
+
+    add_approach_flags(i)
+    i.add_argument("--write-config", nargs="?", const="", metavar="FILE",
+                   help="also point axes.AXIS.model at the identified model in FILE (default: the --config in "
+                   "use), comments kept, the old file backed up as FILE.STAMP.bak")
+    i.add_argument("--model", metavar="NAME|FILE", help="the model identification starts from and compares with "
+                   "(default: the axis's model key, else its plant); its kind (rigid, two-mass) picks the method")
+    i.add_argument("--plant", metavar="NAME|FILE", help="what the emulated drive plays (default: the axis's plant)")
+    i.add_argument("--seconds", type=float, default=20.0,
+                   help="two-mass: length of the multisine excitation, s (default 20)")
+    i.add_argument("--friction", action="store_true",
+                   help="two-mass: also constant-velocity runs for the friction (made anyway when the model has "
+                   "Coulomb friction)")
+    i.add_argument("--noise", type=float, default=0.0, metavar="EFFORT",
+                   help="emulated drive: force noise std on the plant, effort unit (default 0)")
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -64,28 +81,10 @@ def cmd_config(args: argparse.Namespace) -> int:
         atomic_write_text(path, DEFAULT_CONFIG_TOML)
         print(f"wrote {path} (use it with: drivectl --config {path} ...)")
         return 0
+    from drivectl.tools.config_io import show_text
+
     cfg = load_config(args.config)
-    print(f"# resolved configuration from {cfg.source}")
-    print(f"cycle_s = {cfg.cycle_s}")
-    b = cfg.bus
-    print(f'\n[bus]\ninterface = "{b.interface}"\nchannel = "{b.channel}"\nbitrate = {b.bitrate}')
-    if b.interface == "socketcand":
-        print(f'host = "{b.host}"\nport = {b.port}')
-    for name, ac in cfg.axes.items():
-        lim = ac.limits
-        print(f"\n[axes.{name}]")
-        print(f"node_id = {ac.node_id}\nplant = \"{ac.plant}\"\ncontroller = \"{ac.controller}\"\n"
-              f"profile = \"{ac.profile}\"\nrated_effort = {ac.rated_effort}\n"
-              f"encoder_m_per_count = {ac.encoder_m_per_count:g}\neds = \"{ac.eds}\"")
-        if ac.controller_settings:
-            print(f"[axes.{name}.controller_settings]")
-            for k, v in ac.controller_settings.items():
-                print(f"{k} = {json.dumps(v)}")
-        print(f"[axes.{name}.limits]")
-        if lim.position is not None:
-            print(f"position_m = [{lim.position[0]}, {lim.position[1]}]")
-        print(f"max_effort = {lim.max_effort}\nfollowing_error_m = {lim.following_error}\n"
-              f"following_time_s = {lim.following_time}")
+    print(show_text(cfg), end="")
     return 0
 
 
@@ -238,24 +237,44 @@ def cmd_power(args: argparse.Namespace) -> int:
 IDENTIFY_KEYS = {"m": "mass", "c_pos": "c_pos", "c_neg": "c_neg", "fc_pos": "fc_pos", "fc_neg": "fc_neg"}
 
 
-def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
+def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None = None, plant: str | None = None,
+                  noise: float = 0.0, approach: bool | None = None) -> dict[str, Any]:
     """Run the identification on axis ``name`` of ``cfg`` (emulated drive on the bus, or SimAxis);
-    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI."""
+    returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI. An axis that is not
+    at the identification profile's start is moved there first (tools/approach.py; ``approach``: the
+    ``--approach`` / ``--no-approach`` choice)."""
     from drivectl.controllers.pid import PidDob
-    from drivectl.plant_emulator.models import load_plant
     from drivectl.tools.identify import identify_rigid
-    from drivectl.tools.machine import open_machine
+    from drivectl.tools.machine import model_specs, open_machine, plant_specs
 
-    ac = cfg.axis(name)
-    model = load_plant(ac.plant)
+    cfg.axis(name)
+    plants = plant_specs(cfg, [name], plant)
+    model = model_specs(cfg, [name], model, plant, plants=plants)[name]
     if model.model != "rigid":
-        raise ConfigError(f"{cfg.source}: axes.{name}.plant: identify fits a rigid axis, {ac.plant} is {model.model}")
+        raise ConfigError(f"{cfg.source}: axes.{name}: identify's constant-velocity runs fit a rigid axis, model "
+                          f"{model.name} is {model.model}")
     machines = []
 
     def axis_factory(start: float):
-        m = open_machine(cfg, [name], sim=sim, start={name: start})
+        m = open_machine(cfg, [name], sim=sim, start={name: start}, plant=plant, noise=noise)
         machines.append(m)
+        _approach(m.axes[name], start)
         return m.axes[name]
+
+    def _approach(axis: Any, start: float) -> None:
+        from drivectl.controllers.servo import Channel, LimitError, run_channels
+        from drivectl.profiles.dwell import Dwell
+        from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+        ac = cfg.axis(name)
+        ch = Channel(axis, controller_factory(cfg.cycle_s), Dwell(start, 1.0), ac.limits, {})
+        plan, moves = plan_approach([ch], where_axes_stand([ch]), {name: ac.motion})
+        if plan is None:
+            return
+        consent(approach, moves)
+        res = run_channels(plan)  # ends disabled: the identification enables it again
+        if not res.ok:
+            raise LimitError(f"axis {name}: the approach to {start * 1e3:.3f} mm stopped: {res.detail}")
 
     def controller_factory(dt: float):
         # the loop's nominal mass is a rough guess on purpose: the result does not depend on it
@@ -273,10 +292,28 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False) -> dict[str, Any]:
 def cmd_identify(args: argparse.Namespace) -> int:
     from drivectl.plant_emulator.models import PlantSpec
     from drivectl.tools.trace import atomic_write_text
+    from drivectl.tools.trace_stream import check_output_folder
 
     cfg = load_config(args.config)
+    cfg.axis(args.axis)
+    if getattr(args, "write_config", None) is not None:  # before anything moves
+        from drivectl.tools.config_io import target_file
+
+        args.write_config = str(target_file(args.write_config, args.config))
+    from drivectl.tools.machine import model_specs, plant_specs
+
+    plants = plant_specs(cfg, [args.axis], getattr(args, "plant", None))
+    believed = model_specs(cfg, [args.axis], getattr(args, "model", None), getattr(args, "plant", None),
+                           plants=plants)[args.axis]
+    check_output_folder(args.out, "--out", 1_000_000)  # the plant file goes there after the runs
+    if believed.model == "two-mass":  # closed-loop FRF fit (tools/identify_two_mass.py)
+        from drivectl.tools.identify_two_mass import cmd_identify_two_mass
+
+        return cmd_identify_two_mass(args, cfg, believed, plants[args.axis], _merge_plant)
     t0 = time.perf_counter()
-    result = identify_axis(cfg, args.axis, sim=args.sim)
+    result = identify_axis(cfg, args.axis, sim=args.sim, model=getattr(args, "model", None),
+                           plant=getattr(args, "plant", None), noise=getattr(args, "noise", 0.0),
+                           approach=getattr(args, "approach", None))
     keys = IDENTIFY_KEYS
     model = result["spec"]
     ident = result["identified"]
@@ -286,7 +323,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
                      params={keys[k]: float(v) for k, v in ident.items()})
     path = Path(args.out) / f"{args.axis}-identified.toml"
     atomic_write_text(path, spec.to_toml(f"identified by drivectl identify --axis {args.axis} on "
-                                          f"{'SimAxis' if args.sim else cfg.bus.interface}; load with --plant {path}"))
+                                          f"{'SimAxis' if args.sim else cfg.bus.interface}; load with --model {path} "
+                                          "(or --plant)"))
+    merged = _merge_plant(args, cfg, path)
     rel = {k: ident[k] / current[keys[k]] - 1.0 for k in keys}
     if args.json:
         print(json.dumps({"axis": args.axis, "identified": ident, "model": {k: current[keys[k]] for k in keys},
@@ -298,4 +337,19 @@ def cmd_identify(args: argparse.Namespace) -> int:
     for k in keys:
         print(f"{k + ' (' + units[k] + ')':<16} {ident[k]:>10.3f} {current[keys[k]]:>12.3f} {100 * rel[k]:>+10.3f} %")
     print(f"wrote {path}")
+    if merged:
+        print(merged)
     return 0
+
+
+def _merge_plant(args: argparse.Namespace, cfg: Any, plant_file: Path) -> str:
+    """``--write-config``: axes.AXIS.model = the identified model file (absolute: plant paths are read from
+    the working folder). The model, not the plant: what was identified is what the controller should
+    believe; the plant stays what the emulated drive plays. Returns the line to print ("" when not asked)."""
+    if getattr(args, "write_config", None) is None:
+        return ""
+    from drivectl.tools.config_io import merge_into, target_file
+
+    target = target_file(args.write_config, args.config)
+    backup = merge_into(target, args.axis, {"model": str(plant_file.resolve())})
+    return f"merged axes.{args.axis}.model into {target}" + (f" (old file kept as {backup})" if backup else "")

@@ -12,11 +12,13 @@ import math
 import os
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from drivectl.controllers.run_checks import RunChecks
 from drivectl.controllers.servo import Limits
+from drivectl.driver.axis import LAST_RESORTS
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale
 
 DEFAULT_CONFIG_TOML = """\
@@ -24,21 +26,24 @@ DEFAULT_CONFIG_TOML = """\
 cycle_s = 0.001                 # servo cycle = SYNC period
 
 [bus]
-interface = "virtual"           # python-can interface: virtual | slcan | socketcand | socketcan
-channel = "drivectl"            # virtual: any name (made unique per run); slcan: the tty; socketcan: can0
+interface = "virtual"           # any python-can interface: virtual, slcan, socketcand, socketcan, pcan, kvaser, ...
+channel = "drivectl"            # virtual: any name (unique per run); slcan: the tty; socketcan: can0; kvaser: 0
 bitrate = 1000000
 # host = "127.0.0.1"            # socketcand only (drivectl emulate --socketcand serves loopback)
 # port = 29536
+# [bus.options]                 # passed to can.Bus as they are, e.g. pcan: device_id = 1; kvaser: exclusive = true
 
 [axes.x]
 node_id = 1
 rated_effort = 100.0         # N per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.1 N
-plant = "rigid-x"               # built-in plant name or a plant TOML file
+plant = "rigid-x"               # built-in plant name or a plant TOML file (what the emulated drive plays)
+# model = "rigid-x"             # the plant the controller believes (name or TOML file); default: the plant
 controller = "asmc"             # smc | vprl | pid-nftsm | asmc | pid | pid-dob
 profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
 max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
 rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): it stops by itself; 0 = off
+last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
 [axes.x.limits]
@@ -48,6 +53,7 @@ max_effort = 2000.0             # N, clipped here and by the drive (0x6072)
 following_error_m = 0.001       # window
 following_time_s = 0.01
 max_speed_m_s = 2.0             # a position step faster than this between two samples is implausible
+max_jump_m = 0.0005             # a second difference of the position beyond this is an encoder glitch
 
 [axes.y]
 node_id = 2
@@ -82,6 +88,16 @@ position_m = [-0.01, 0.1]
 max_effort = 30.0               # V
 following_error_m = 0.001
 following_time_s = 0.01
+
+[checks]
+# fractions of a run's cycles: past *_warn a completed run says "completed with warnings" (exit 4),
+# past *_fault it is a fault (exit 3)
+missed_deadlines_warn = 0.005   # --paced: cycles that started more than half a cycle late
+missed_deadlines_fault = 0.05
+clipped_warn = 0.01             # cycles with the effort clipped at limits.max_effort
+clipped_fault = 0.5
+extrapolated_warn = 0.005       # cycles run on an extrapolated position (TPDO lost or malformed)
+extrapolated_fault = 0.05
 """
 
 
@@ -93,15 +109,64 @@ DEFAULT_EDS = str(Path(__file__).resolve().parent.parent / "driver" / "eds" / "d
 
 @dataclass(frozen=True)
 class BusConfig:
-    interface: str = "virtual"
-    channel: str = "drivectl"
+    interface: str = "virtual"  # any of can.interfaces.VALID_INTERFACES
+    channel: str | int = "drivectl"
     bitrate: int = 1_000_000
     host: str = "127.0.0.1"  # socketcand only
     port: int = 29536  # socketcand only
+    options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
+
+    def open_kwargs(self) -> dict[str, Any]:
+        """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
+        kwargs = dict(self.options)
+        if self.interface == "socketcand":
+            kwargs.update(host=self.host, port=self.port)
+        return kwargs
 
 
 class ConfigError(ValueError):
     """The machine configuration is invalid; one line naming the file and the key."""
+
+
+def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
+    """The [bus] table: any interface python-can knows, its options passed through to ``can.Bus``."""
+    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options"}
+    if extra:
+        raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
+    from drivectl.driver.network import INTERFACES, RESERVED_OPTIONS
+
+    interface = bus_raw.get("interface", "virtual")
+    if interface not in INTERFACES:
+        raise ConfigError(f"{src}: bus.interface: {interface!r} is not an interface python-can knows "
+                          f"(one of {', '.join(INTERFACES)})")
+    bitrate = bus_raw.get("bitrate", 1_000_000)
+    if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
+        raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
+    port = bus_raw.get("port", 29536)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+        raise ConfigError(f"{src}: bus.port: expected a TCP port 1..65535, got {port!r}")
+    channel = bus_raw.get("channel", "drivectl")
+    if isinstance(channel, bool) or not (isinstance(channel, str) and channel or isinstance(channel, int)
+                                         and channel >= 0):
+        # an integer for the adapters python-can numbers (Kvaser, IXXAT, Vector, gs_usb: 0, 1, ...)
+        raise ConfigError(f"{src}: bus.channel: expected a non-empty string or a channel number >= 0, "
+                          f"got {channel!r}")
+    options = bus_raw.get("options", {})
+    if not isinstance(options, dict):
+        raise ConfigError(f"{src}: bus.options: expected a table of keyword arguments for python-can's "
+                          f"{interface} interface, got {options!r}")
+    for key, value in options.items():
+        if key in RESERVED_OPTIONS:
+            raise ConfigError(f"{src}: bus.options.{key}: set by [bus] itself, not by its options")
+        if not key.isidentifier():
+            raise ConfigError(f"{src}: bus.options.{key}: not a keyword argument name")
+        if not isinstance(value, str | int | float | bool) or isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{src}: bus.options.{key}: expected a string, number or boolean, got {value!r}")
+    if options and interface == "virtual":
+        raise ConfigError(f"{src}: bus.options: the virtual bus takes no options (it carries the in-process "
+                          f"emulated drives in lockstep); remove them or choose the adapter's interface")
+    return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
+                     dict(options))
 
 
 @dataclass(frozen=True)
@@ -117,9 +182,17 @@ class AxisConfig:
     rated_effort: float = 100.0
     eds: str = DEFAULT_EDS
     max_lost_cycles: int = 3  # consecutive cycles without TPDOs bridged before it is a fault
+    last_resort: str = "nmt-reset"  # the stop's last escalation (driver/canopen_axis.py LAST_RESORTS)
     rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: two cycles
     #: limits the file left out: taken from the drive (0x6065/0x6066, 0x607D) when it has them
     limits_from_drive: frozenset[str] = frozenset()
+    #: the plant the controller believes (built-in name or TOML file); None: the same as the plant
+    model: str | None = None
+    #: [axes.NAME.motion], [axes.NAME.homing], [axes.NAME.emulator] (the session's moves, homing and the
+    #: emulated drive's switches: controllers/motion.py, controllers/homing.py)
+    motion: Any = None
+    homing: Any = None
+    emulator: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -135,6 +208,7 @@ class MachineConfig:
     cycle_s: float
     axes: dict[str, AxisConfig]
     bus: BusConfig = field(default_factory=BusConfig)
+    checks: RunChecks = field(default_factory=RunChecks)  # [checks]: when a completed run warns or faults
 
     def axis(self, name: str) -> AxisConfig:
         if name not in self.axes:
@@ -148,6 +222,11 @@ def load_config(path: str | Path | None = None) -> MachineConfig:
     if not path:
         return parse_config(tomllib.loads(DEFAULT_CONFIG_TOML), "<embedded default>")
     p = Path(path)
+    try:
+        str(p).encode("utf-8")
+    except UnicodeEncodeError:
+        raise ConfigError(f"--config {os.fsencode(p)!r}: the path is not valid UTF-8 (traces record it as "
+                          "text); rename the file") from None
     try:
         data = tomllib.loads(p.read_text())
     except FileNotFoundError:
@@ -176,39 +255,31 @@ def _string(src: str, key: str, value: Any) -> str:
 
 
 def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
-    unknown = set(data) - {"cycle_s", "axes", "bus"}
+    unknown = set(data) - {"cycle_s", "axes", "bus", "checks"}
     if unknown:
-        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes)")
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks)")
+    checks = _checks(data.get("checks", {}), src)
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
-    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port"}
-    if extra:
-        raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
-    from drivectl.driver.network import INTERFACES
-
-    interface = bus_raw.get("interface", "virtual")
-    if interface not in INTERFACES:
-        raise ConfigError(f"{src}: bus.interface: expected one of {', '.join(INTERFACES)}, got {interface!r}")
-    bitrate = bus_raw.get("bitrate", 1_000_000)
-    if isinstance(bitrate, bool) or not isinstance(bitrate, int) or bitrate <= 0:
-        raise ConfigError(f"{src}: bus.bitrate: expected a positive integer (bit/s), got {bitrate!r}")
-    port = bus_raw.get("port", 29536)
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
-        raise ConfigError(f"{src}: bus.port: expected a TCP port 1..65535, got {port!r}")
-    bus = BusConfig(interface, _string(src, "bus.channel", bus_raw.get("channel", "drivectl")), bitrate,
-                    _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port)
+    bus = parse_bus(bus_raw, src)
     cycle = _number(src, "cycle_s", data.get("cycle_s", 0.001), positive=True)
     axes_raw = data.get("axes")
     if not isinstance(axes_raw, dict) or not axes_raw:
         raise ConfigError(f"{src}: axes: expected at least one [axes.NAME] table")
     axes: dict[str, AxisConfig] = {}
+    from drivectl.tools.trace_stream import safe_name
+
     for name, raw in axes_raw.items():
         k = f"axes.{name}"
+        if not safe_name(name):
+            raise ConfigError(f"{src}: axes.{name!r}: an axis name names its trace files: letters, digits, _ + - "
+                              "only, at most 64 characters")
         if not isinstance(raw, dict):
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
-                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms"}
+                   "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
+                   "homing", "emulator", "last_resort"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -227,7 +298,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         if not isinstance(lim_raw, dict):
             raise ConfigError(f"{src}: {k}.limits: expected a table")
         lim_extra = set(lim_raw) - {"position_m", "max_effort", "following_error_m", "following_time_s",
-                                    "max_speed_m_s"}
+                                    "max_speed_m_s", "max_jump_m"}
         if lim_extra:
             raise ConfigError(f"{src}: {k}.limits.{sorted(lim_extra)[0]}: unknown key")
         position = lim_raw.get("position_m")
@@ -251,6 +322,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             following_time=_number(src, f"{k}.limits.following_time_s", lim_raw.get("following_time_s", 0.0),
                                    nonnegative=True),
             max_speed=_number(src, f"{k}.limits.max_speed_m_s", lim_raw.get("max_speed_m_s", 2.0), positive=True),
+            max_jump=_number(src, f"{k}.limits.max_jump_m", lim_raw.get("max_jump_m", Limits.max_jump), positive=True),
         )
         from_drive = {"position": "position_m", "following_error": "following_error_m",
                       "following_time": "following_time_s"}
@@ -274,10 +346,13 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             node_id=_node_id(src, f"{k}.node_id", raw.get("node_id", len(axes) + 1)),
             rated_effort=rated,
             eds=_string(src, f"{k}.eds", raw.get("eds", DEFAULT_EDS)),
-            max_lost_cycles=_count(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
+            max_lost_cycles=_lost_cycles(src, f"{k}.max_lost_cycles", raw.get("max_lost_cycles", 3)),
             rpdo_timeout_ms=_count(src, f"{k}.rpdo_timeout_ms", raw["rpdo_timeout_ms"])
             if "rpdo_timeout_ms" in raw else None,
             limits_from_drive=frozenset(f for f, key in from_drive.items() if key not in lim_raw),
+            model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
+            **_session_tables(src, k, raw),
+            last_resort=_choice(src, f"{k}.last_resort", raw.get("last_resort", "nmt-reset"), LAST_RESORTS),
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -285,12 +360,58 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus)
+    return MachineConfig(src, cycle, axes, bus, checks)
+
+
+def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ConfigError(f"{src}: {key}: expected one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
+def _checks(raw: Any, src: str) -> RunChecks:
+    """[checks]: fractions of a run's cycles past which a completed run warns (exit 4) or faults (exit 3)."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: checks: expected a table")
+    known = {f.name for f in fields(RunChecks)}
+    extra = set(raw) - known
+    if extra:
+        raise ConfigError(f"{src}: checks.{sorted(extra)[0]}: unknown key (known: {', '.join(sorted(known))})")
+    values = {key: _number(src, f"checks.{key}", value, nonnegative=True) for key, value in raw.items()}
+    try:
+        return RunChecks(**values)
+    except ValueError as exc:
+        raise ConfigError(f"{src}: {exc}") from None
+
+
+def _session_tables(src: str, key: str, raw: dict[str, Any]) -> dict[str, Any]:
+    """motion, homing and emulator tables of an axis, parsed by their own modules."""
+    from drivectl.controllers.homing import parse_emulator_io, parse_homing
+    from drivectl.controllers.motion import parse_motion
+
+    try:
+        return {"motion": parse_motion(src, f"{key}.motion", raw.get("motion")),
+                "homing": parse_homing(src, f"{key}.homing", raw.get("homing")),
+                "emulator": parse_emulator_io(src, f"{key}.emulator", raw.get("emulator"))}
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _count(src: str, key: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFFFF:
         raise ConfigError(f"{src}: {key}: expected an integer 0..65535, got {value!r}")
+    return value
+
+
+#: the most cycles in a row the master bridges without TPDOs: it extrapolates the position from the last
+#: one received, which holds for a few cycles only (at 2 m/s and 1 g, 10 ms of a wrong guess is 50 um)
+MAX_LOST_CYCLES = 10
+
+
+def _lost_cycles(src: str, key: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_LOST_CYCLES:
+        raise ConfigError(f"{src}: {key}: expected an integer 0..{MAX_LOST_CYCLES} (cycles bridged by extrapolating "
+                          f"the position; more is driving blind), got {value!r}")
     return value
 
 

@@ -19,7 +19,10 @@ it had died), bus-error and bus-off need the master's own bus (``drivectl trace 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
@@ -30,23 +33,36 @@ if TYPE_CHECKING:
 
 
 def add_emulate_parser(sub: Any) -> None:
+    from drivectl.driver.network import INTERFACES
+
     e = sub.add_parser("emulate", help="run the machine's emulated drives on a bus until stopped",
                        description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1].replace("\n", " "))
     e.add_argument("--axis", default=None, help="axes to emulate, comma-separated (default: all of the config)")
     how = e.add_mutually_exclusive_group()
     how.add_argument("--slcan", action="store_true", help="be an SLCAN adapter on a new pseudo-terminal")
     how.add_argument("--socketcand", nargs="?", const=0, type=int, metavar="PORT",
-                     help="serve the socketcand protocol on 127.0.0.1:PORT (default: a free port)")
-    how.add_argument("--interface", choices=("socketcan", "virtual"), help="a python-can interface to join")
+                     help="serve the socketcand protocol on 127.0.0.1:PORT (default: a free port); several masters "
+                     "and tools can connect at once")
+    how.add_argument("--interface", choices=INTERFACES, metavar="NAME",
+                     help="a python-can interface to join (socketcan, or an adapter: pcan, kvaser, ...)")
     e.add_argument("--channel", default="vcan0", help="channel for --interface (default vcan0)")
+    e.add_argument("--bitrate", type=int, default=1_000_000, help="bit/s for --interface (default 1000000)")
+    e.add_argument("--idle-timeout", type=float, default=30.0, metavar="S",
+                   help="--socketcand: close a client that took none of the frames waiting for it for S seconds "
+                   "(dead or hung; default 30; 0: never)")
     e.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
                    help="add a physical effect to every emulated plant (repeatable)")
     e.add_argument("--plant", help="override the plants (built-in name or TOML file)")
     e.add_argument("--noise", type=float, default=0.0, help="force noise std (effort units)")
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--bus-log", metavar="FILE", help="record every frame (python-can Logger, format by suffix)")
+    e.add_argument("--bus-log", metavar="FILE", help="record every frame, sent and received, stamped on the host's "
+                   "clock (python-can Logger, format by suffix: .asc, .blf, .log, .csv, .trc)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault TIME s after the drive is enabled (repeatable; see README, Faults)")
+
+
+class EmulateArgError(ValueError):
+    """A value given to ``drivectl emulate`` is unusable: one line naming the flag, exit 2."""
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
@@ -55,16 +71,90 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     # SIGINT/SIGTERM only end the receive loop: raised inside the bus's queue they could leave its lock
     # held and hang the shutdown
     with stop_on_signals() as stop:
-        return _emulate(args, stop)
+        try:
+            return _emulate(args, stop)
+        except EmulateArgError as exc:
+            print(f"drivectl: emulate: {exc}", file=sys.stderr)
+            return 2
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """Every flag's value, before any bus opens or file is created."""
+    if args.socketcand is not None and not 0 <= args.socketcand <= 65535:
+        raise EmulateArgError(f"--socketcand {args.socketcand}: expected a TCP port 0..65535 (0: a free one)")
+    if not math.isfinite(args.idle_timeout) or args.idle_timeout < 0:
+        raise EmulateArgError(f"--idle-timeout {args.idle_timeout}: expected seconds >= 0 (0: never)")
+    if args.bitrate <= 0:
+        raise EmulateArgError(f"--bitrate {args.bitrate}: expected a positive integer (bit/s)")
+    if not math.isfinite(args.noise) or args.noise < 0:
+        raise EmulateArgError(f"--noise {args.noise}: expected a force noise std >= 0")
+    if args.axis is not None:
+        names = [a.strip() for a in args.axis.split(",")]
+        if not all(names):
+            raise EmulateArgError(f"--axis {args.axis!r}: expected axis names separated by commas")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise EmulateArgError(f"--axis {args.axis}: axis {dup[0]} given twice")
+    if args.bus_log:
+        path = Path(args.bus_log)
+        if path.suffix.lower() not in _LOG_SUFFIXES:
+            raise EmulateArgError(f"--bus-log {path}: unknown log format (use {', '.join(_LOG_SUFFIXES[:-1])})")
+        folder = path.parent
+        if not folder.is_dir():
+            raise EmulateArgError(f"--bus-log {path}: folder {folder} does not exist")
+        if path.is_dir():
+            raise EmulateArgError(f"--bus-log {path}: is a folder, expected a file name")
+        if not os.access(folder, os.W_OK | os.X_OK):
+            raise EmulateArgError(f"--bus-log {path}: folder {folder} is not writable")
+
+
+_LOG_SUFFIXES = (".asc", ".blf", ".log", ".csv", ".trc", ".gz")
+
+
+def _open_emulator_bus(args: argparse.Namespace) -> tuple[can.BusABC, str, str]:
+    """The bus the drives sit on, where it is and how a master points at it; one line naming the flag
+    when it cannot be opened."""
+    from drivectl.driver.network import BusOpenError, open_bus
+
+    if args.slcan:
+        from drivectl.plant_emulator.slcan import SlcanAdapterBus
+
+        try:
+            bus: can.BusABC = SlcanAdapterBus.open_pty()
+        except OSError as exc:
+            raise EmulateArgError(f"--slcan: cannot open a pseudo-terminal: {exc.strerror or exc}") from None
+        return bus, f"slcan tty {bus.tty_path}", f'bus.interface = "slcan", bus.channel = "{bus.tty_path}"'
+    if args.socketcand is not None:
+        from drivectl.plant_emulator.socketcand import HOST, SocketcandServerBus
+
+        try:
+            bus = SocketcandServerBus(port=args.socketcand, idle_timeout=args.idle_timeout or None)
+        except OSError as exc:
+            raise EmulateArgError(f"--socketcand {args.socketcand}: cannot listen on {HOST}:{args.socketcand}: "
+                                  f"{exc.strerror or exc}") from None
+        return (bus, f"socketcand {HOST}:{bus.port}",
+                f'bus.interface = "socketcand", bus.host = "{HOST}", bus.port = {bus.port}, bus.channel = "can0"')
+    if args.interface:
+        try:
+            bus = open_bus(args.interface, args.channel, args.bitrate)
+        except BusOpenError as exc:
+            said = str(exc).split(": cannot open: ", 1)[-1]
+            raise EmulateArgError(f"--interface {args.interface} --channel {args.channel}: cannot open: {said}") \
+                from None
+        return (bus, f"{args.interface}:{args.channel}",
+                f'bus.interface = "{args.interface}", bus.channel = "{args.channel}"')
+    raise EmulateArgError("choose a bus: --slcan, --socketcand [PORT] or --interface socketcan")
 
 
 def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
+    from drivectl.driver.network import BusLog, log_sent_frames
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
     from drivectl.plant_emulator.node402 import EmulatedDrive
     from drivectl.tools.config import load_config
     from drivectl.tools.machine import axis_profile, plant_specs
 
+    _check_args(args)
     cfg = load_config(args.config)
     names = [a.strip() for a in args.axis.split(",")] if args.axis else list(cfg.axes)
     effects = [parse_effect(t) for t in args.effect]
@@ -77,28 +167,13 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         if f.axis is not None and f.axis not in names:
             raise FaultSpecError(f"--fault {f}: axis {f.axis!r} is not emulated here ({', '.join(names)})")
     injectors = {name: FaultInjector([f for f in faults if (f.axis or names[0]) == name]) for name in names}
-    if args.slcan:
-        from drivectl.plant_emulator.slcan import SlcanAdapterBus
-
-        bus: can.BusABC = SlcanAdapterBus.open_pty()
-        where = f"slcan tty {bus.tty_path}"
-        hint = f'bus.interface = "slcan", bus.channel = "{bus.tty_path}"'
-    elif args.socketcand is not None:
-        from drivectl.plant_emulator.socketcand import SocketcandServerBus
-
-        bus = SocketcandServerBus(port=args.socketcand)
-        where = f"socketcand 127.0.0.1:{bus.port}"
-        hint = f'bus.interface = "socketcand", bus.host = "127.0.0.1", bus.port = {bus.port}, bus.channel = "can0"'
-    elif args.interface:
-        bus = can.Bus(interface=args.interface, channel=args.channel)
-        where = f"{args.interface}:{args.channel}"
-        hint = f'bus.interface = "{args.interface}", bus.channel = "{args.channel}"'
-    else:
-        print("drivectl: emulate: choose a bus: --slcan, --socketcand [PORT] or --interface socketcan",
-              file=sys.stderr)
-        return 2
+    bus, where, hint = _open_emulator_bus(args)
+    try:
+        log = BusLog(args.bus_log) if args.bus_log else None
+    except (OSError, ValueError) as exc:
+        bus.shutdown()
+        raise EmulateArgError(f"--bus-log {args.bus_log}: cannot write: {exc}") from None
     net = canopen.Network(bus)  # no notifier: this process pumps its own bus, in order
-    log = can.Logger(args.bus_log) if args.bus_log else None
     drives = []
     for i, name in enumerate(names):
         ac = cfg.axis(name)
@@ -106,15 +181,11 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         start = axis_profile(cfg, name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
-                              initial_position=start, faults=injectors[name] if faults else None)
+                              initial_position=start, faults=injectors[name] if faults else None,
+                              io=ac.emulator)
         drives.append(drive)
-    original_send = net.send_message
     if log is not None:
-        def logged_send(can_id: int, data: bytes, remote: bool = False) -> None:
-            original_send(can_id, data, remote)
-            log.on_message_received(can.Message(arbitration_id=can_id, data=bytes(data), is_rx=False,
-                                                is_extended_id=can_id > 0x7FF))
-        net.send_message = logged_send  # type: ignore[method-assign]
+        log_sent_frames(net, log)  # stamped when sent, on the clock received frames are restamped with
     for drive in drives:
         drive.boot()
     nodes = ", ".join(f"{n} (node {cfg.axis(n).node_id}, {specs[n].name})" for n in names)

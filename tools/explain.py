@@ -345,7 +345,7 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                     f.effect for f in trial if f not in named)
     finally:
         if pool is not None:
-            pool.shutdown()
+            pool.shutdown(wait=True, cancel_futures=True)
         if bar is not None:
             bar.close()
     gap1 = math.sqrt(float(np.mean(mse_cur)))
@@ -436,19 +436,28 @@ def add_explain_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", help="folder for STEM.plant.toml, STEM.report.txt, STEM.png "
                    "(default: beside the trace)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--write-config", nargs="?", const="", metavar="FILE",
+                   help="also point axes.AXIS.plant (AXIS: the trace's) at the augmented plant in FILE (default: "
+                   "the --config in use), comments kept, the old file backed up as FILE.STAMP.bak")
     return p
 
 
 def cmd_explain(args: argparse.Namespace) -> int:
     """Exit 0 with a result (``none`` included); 2 with one line on stderr for bad input."""
+    from drivectl.tools.config import ConfigError
+
     path = Path(args.trace)
     try:
         spec = load_plant(args.plant)
+        if getattr(args, "write_config", None) is not None:  # before the work
+            from drivectl.tools.config_io import target_file
+
+            args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
         trace = Trace.read(path)
         out = Path(args.out) if args.out else path.parent
         res = explain(trace, spec, out_dir=out, source=str(path), stem=path.stem + ".explain",
                       progress=not getattr(args, "quiet", False))
-    except (ExplainError, TraceError, PlantError) as exc:
+    except (ExplainError, TraceError, PlantError, ConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     if args.json:
@@ -457,4 +466,19 @@ def cmd_explain(args: argparse.Namespace) -> int:
         print(res.report, end="")
         for f in res.files:
             print(f"wrote {f}")
+    if getattr(args, "write_config", None) is not None:  # tools/config_io.py
+        from drivectl.tools.config_io import merge_into, target_file
+
+        axis = trace.meta.get("axis", "")
+        plant = next((f for f in res.files if str(f).endswith(".plant.toml")), None)
+        try:
+            if plant is None:
+                raise ConfigError("--write-config: no augmented plant was written to merge")
+            target = target_file(args.write_config, getattr(args, "config", None))
+            backup = merge_into(target, axis, {"plant": str(Path(plant).resolve())})
+        except ConfigError as exc:
+            print(f"drivectl: {exc}", file=sys.stderr)
+            return 2
+        if not args.json:
+            print(f"merged axes.{axis}.plant into {target}" + (f" (old file kept as {backup})" if backup else ""))
     return 0

@@ -39,6 +39,15 @@ CASES: dict[str, tuple[str | None, str | None]] = {
     "sdo-abort": ("refused", "sdo abort"),
     "limit-switch": ("fault", "drive fault"),
     "master-dead": ("drive", None),
+    "rogue-rpdo": ("fault", "rogue rpdo"),
+    "rogue-sync": ("fault", "rogue sync"),
+    "foreign-nmt": ("fault", "foreign nmt"),
+    "foreign-nmt:command=0x80": ("fault", "foreign nmt"),
+    "foreign-nmt:command=0x82": ("fault", "foreign nmt"),
+    "malformed-frame": (None, None),
+    "malformed-frame:function=0x80,length=3": (None, None),
+    "malformed-frame:function=0x700,length=0,cycles=5": (None, None),
+    "malformed-frame:rtr=1,cycles=2": (None, None),
 }
 
 #: the bound every stop must meet: cycles from the detection to the torque off
@@ -145,7 +154,8 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
             n_planned = int(round(duration / cfg.cycle_s)) + 1
             finite = len(back) > 0 and bool(np.isfinite(back.pos).all() and np.isfinite(back.effort).all())
             if result.fault is None:
-                counted = sum(int(back.meta.get(k, "0")) for k in ("tpdo_lost_cycles", "tpdo_late_frames"))
+                counted = sum(int(back.meta.get(k, "0")) for k in ("tpdo_lost_cycles", "tpdo_late_frames",
+                                                                   "malformed_frames"))
                 out.detected = counted > 0
                 out.kind = f"tolerated ({counted} counted)"
                 out.safe_within_cycles = 0  # nothing to stop: the run went on, by design

@@ -15,11 +15,9 @@ master has stopped sending (it died, its bus went off).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
-
-import can
 
 from drivectl.driver.axis import Axis
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
@@ -103,6 +101,56 @@ def plant_specs(cfg: MachineConfig, names: Sequence[str], plant: str | None = No
     return specs
 
 
+def model_specs(cfg: MachineConfig, names: Sequence[str], model: str | None = None, plant: str | None = None,
+                plants: Mapping[str, PlantSpec] | None = None) -> dict[str, PlantSpec]:
+    """The plant each axis's controller believes (its *model*), beside the plant the drive plays.
+
+    ``model`` (``--model``) wins, then the axis's ``model`` key, then the plant the run uses (``plant``,
+    i.e. ``--plant``, else ``axes.NAME.plant``) -- so ``--plant`` alone still changes both, and a
+    mismatched machine is ``--plant TRUE --model BELIEVED``. The model never carries the run's
+    ``--effect`` effects: those are what the machine does and the controller does not know. An error
+    names the flag or the configuration key; a model whose effort unit differs from the plant's
+    (``plants``, when given) is refused.
+    """
+    out = {}
+    for name in names:
+        ac = cfg.axis(name)
+        if model is not None:
+            what, text = "--model", model
+        elif ac.model is not None:
+            what, text = f"{cfg.source}: axes.{name}.model", ac.model
+        elif plant is not None:
+            what, text = "--plant", plant
+        else:
+            what, text = f"{cfg.source}: axes.{name}.plant", ac.plant
+        try:
+            spec = load_plant(text)
+        except PlantError as exc:
+            raise PlantError(f"{what}: {exc}") from None
+        if plants is not None and name in plants and plants[name].effort_unit != spec.effort_unit:
+            raise PlantError(f"{what}: model {spec.name} has effort in {spec.effort_unit}, axis {name}'s plant "
+                             f"{plants[name].name} in {plants[name].effort_unit}")
+        out[name] = spec
+    return out
+
+
+def axis_model(cfg: MachineConfig, name: str) -> str:
+    """The model axis ``name`` of ``cfg`` names: its ``model`` key, else its ``plant``."""
+    ac = cfg.axis(name)
+    return ac.model if ac.model is not None else ac.plant
+
+
+def with_model(cfg: MachineConfig, name: str, model: str | None) -> MachineConfig:
+    """``cfg`` with axis ``name``'s model set to ``model`` (``--model``; None leaves it), for tools that
+    read the model from the configuration (tune's search runs on it)."""
+    if model is None:
+        return cfg
+    from dataclasses import replace
+
+    model_specs(cfg, [name], model)  # validated now: one line naming --model
+    return replace(cfg, axes={**cfg.axes, name: replace(cfg.axis(name), model=model)})
+
+
 def axis_profile(cfg: MachineConfig, name: str, profile: str | None = None) -> Profile:
     """The profile ``profile`` (``--profile``) or else the one ``cfg`` names for axis ``name``; an error in
     the latter names the configuration key that pointed there."""
@@ -147,7 +195,7 @@ def open_machine(
             ac = cfg.axis(name)
             axes[name] = SimAxis(specs[name].build(dt), name=name, resolution=ac.encoder_m_per_count,
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
-                                 initial_position=start.get(name, 0.0))
+                                 initial_position=start.get(name, 0.0), io=ac.emulator)
         return Machine(axes, specs, "sim (SimAxis, no bus)")
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)
@@ -172,7 +220,8 @@ def open_machine(
                 injector = machine.injectors[name] = FaultInjector(mine, bus=machine.master_bus)
             drive = EmulatedDrive(emu_net, ac.node_id, specs[name].build(dt), rated_effort=ac.rated_effort,
                                   resolution=ac.encoder_m_per_count, force_noise=noise, seed=seed + i,
-                                  initial_position=start.get(name, 0.0), faults=injector)
+                                  initial_position=start.get(name, 0.0), faults=injector,
+                                  io=ac.emulator)
             machine.drives[name] = drive
             machine._closers.append(drive.close)
             drive.boot()
@@ -193,7 +242,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
                            max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms,
-                           max_effort=ac.limits.max_effort)
+                           max_effort=ac.limits.max_effort, last_resort=ac.last_resort)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)
@@ -204,15 +253,12 @@ def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Plan
     """Masters on a bus that reaches drives in another process (slcan, socketcand, socketcan):
     a notifier thread receives, each cycle waits for its TPDOs against a deadline."""
     b = cfg.bus
-    kwargs: dict[str, Any] = {}
-    if b.interface == "socketcand":
-        kwargs = {"host": b.host, "port": b.port}
-    bus = open_bus(b.interface, b.channel, b.bitrate, **kwargs)
+    bus = open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs())
     net = threaded_network(bus)
     machine = Machine({}, specs, f"{b.interface}:{b.channel}")
     machine._closers.append(lambda: close_threaded(net))
     if bus_log:
-        net.notifier.add_listener(can.Logger(bus_log))
+        attach_bus_log(net, bus_log)  # sent and received frames, on one clock
     try:
         _connect_masters(machine, net, cfg, names, specs)
     except BaseException:
@@ -278,8 +324,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
         for drive in session.drives.values():
             drive.boot()
         return session
-    kwargs: dict[str, Any] = {"host": b.host, "port": b.port} if b.interface == "socketcand" else {}
-    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **kwargs))
+    net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs()))
     session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])
     session.watch_nmt()
     return session

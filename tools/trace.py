@@ -11,8 +11,13 @@ time_s,ref_m,pos_m,effort
 ```
 ``#`` lines before the column row are metadata (``key: value``). Required columns: ``time_s``,
 ``ref_m``, ``pos_m`` (measured), ``effort`` (commanded, in ``effort_unit``); any others may follow.
-A CSV from another recorder reads once it has the four columns. Writes are atomic (temporary file in
-the same folder, then rename), so a reader never sees half a trace.
+A CSV from another recorder reads once it has the four columns. The whole contract, with the streamed
+form (``recording: streamed``, trailer metadata after the data, the end marker) is docs/trace-format.md.
+
+:meth:`Trace.write` writes a whole trace atomically (temporary file in the same folder, then rename);
+a run streams its trace with :class:`drivectl.tools.trace_stream.TraceWriter`. :meth:`Trace.read`
+refuses what it cannot read right (duplicate column names, time not increasing or not stepping by
+``dt_s``, files whose columns would not fit the memory budget) and reads gzip and a UTF-8 BOM.
 """
 
 from __future__ import annotations
@@ -20,15 +25,23 @@ from __future__ import annotations
 import io
 import math
 import os
-import tempfile
+import secrets
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 MAGIC = "# drivectl trace v1"
 REQUIRED = ("time_s", "ref_m", "pos_m", "effort")
-_FORMATS = {"time_s": "%.6f", "ref_m": "%.9f", "pos_m": "%.9f", "effort": "%.6f"}
+FORMATS = {"time_s": "%.6f", "ref_m": "%.9f", "pos_m": "%.9f", "effort": "%.6f"}
+#: header value of ``recording`` in a streamed trace, and its last line once complete (docs/trace-format.md)
+STREAMED = "streamed"
+END_MARKER = "# end of trace"
+#: data rows parsed at once by the reader
+CHUNK_ROWS = 65536
+BUDGET_ENV = "DRIVECTL_TRACE_MAX_MB"
 
 
 class TraceError(ValueError):
@@ -102,7 +115,7 @@ class Trace:
         data = np.column_stack([np.asarray(self.columns[k], dtype=float) for k in names]) if len(self) else None
         out.write(",".join(names) + "\n")
         if data is not None:
-            fmt = [_FORMATS.get(k, "%.9g") for k in names]
+            fmt = [FORMATS.get(k, "%.9g") for k in names]
             np.savetxt(out, data, fmt=fmt, delimiter=",")
         return out.getvalue()
 
@@ -113,66 +126,199 @@ class Trace:
         return path
 
     @classmethod
-    def read(cls, path: str | Path) -> Trace:
+    def read(cls, path: str | Path, columns: Sequence[str] | None = None) -> Trace:
+        """Read a trace file (plain or gzip, UTF-8 with or without BOM) in bounded memory: the data is
+        parsed in chunks and kept as float64 columns; a file whose columns would need more than
+        :func:`max_read_bytes` is refused with the figure. ``columns`` keeps only those columns (the four
+        required are always kept). A streamed trace (docs/trace-format.md) without its end marker reads
+        as far as it was flushed, with ``trace_complete: false`` in its metadata."""
         path = Path(path)
         try:
-            text = path.read_text()
+            raw = open(path, "rb")  # noqa: SIM115 - closed below, whatever the reader does
         except FileNotFoundError:
             raise TraceError(f"{path}: no such trace file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise TraceError(f"{path}: cannot read: {exc}") from None
-        return cls.parse(text, source=str(path))
+        except OSError as exc:
+            raise TraceError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        try:
+            size = os.fstat(raw.fileno()).st_size
+            if raw.peek(2)[:2] == b"\x1f\x8b":
+                import gzip
+
+                binary: Any = gzip.GzipFile(fileobj=raw)
+                size = 0  # unknown until read
+            else:
+                binary = raw
+            text = io.TextIOWrapper(binary, encoding="utf-8-sig", newline=None)
+            try:
+                return cls._from_lines(text, str(path), size_hint=size, keep=columns)
+            except (OSError, EOFError, UnicodeDecodeError) as exc:
+                raise TraceError(f"{path}: cannot read: {exc}") from None
+        finally:
+            raw.close()
 
     @classmethod
     def parse(cls, text: str, source: str = "<trace>") -> Trace:
+        return cls._from_lines(io.StringIO(text.removeprefix("\ufeff")), source)
+
+    @classmethod
+    def _from_lines(cls, lines: Iterator[str] | io.TextIOBase, source: str, size_hint: int = 0,
+                    keep: Sequence[str] | None = None) -> Trace:
         meta: dict[str, str] = {}
-        lines = text.splitlines()
-        i = 0
-        while i < len(lines) and (lines[i].startswith("#") or not lines[i].strip()):
-            line = lines[i].lstrip("#").strip()
-            if ":" in line and not line.startswith("drivectl trace"):
-                key, _, value = line.partition(":")
-                meta[key.strip()] = value.strip()
-            i += 1
-        if "dt_s" in meta:
-            try:
-                dt = float(meta["dt_s"])
-            except ValueError:
-                dt = math.nan
-            if not (math.isfinite(dt) and dt > 0):
-                raise TraceError(f"{source}: dt_s: expected a number > 0 (s), got {meta['dt_s']!r}")
-        if i >= len(lines):
+        header_line = None
+        consumed = 0
+        for line in lines:
+            consumed += len(line)
+            if line.startswith("#") or not line.strip():
+                _meta_line(line, meta)
+                continue
+            header_line = line
+            break
+        _check_dt_text(meta, source)
+        if header_line is None:
             raise TraceError(f"{source}: no column row (expected {','.join(REQUIRED)})")
-        names = [c.strip() for c in lines[i].split(",")]
+        names = [c.strip() for c in header_line.strip().split(",")]
+        seen: dict[str, int] = {}
+        for j, name in enumerate(names):
+            if name in seen:
+                raise TraceError(f"{source}: column {name!r} appears twice (columns {seen[name] + 1} and {j + 1}): "
+                                 "which one is meant cannot be told")
+            seen[name] = j
         missing = [c for c in REQUIRED if c not in names]
         if missing:
             raise TraceError(f"{source}: missing column(s) {', '.join(missing)} (have {', '.join(names)})")
-        rows = [ln for ln in lines[i + 1 :] if ln.strip()]
-        if not rows:
+        wanted = [j for j, n in enumerate(names) if keep is None or n in keep or n in REQUIRED]
+        streamed = meta.get("recording") == STREAMED
+        budget = max_read_bytes()
+        parts: list[list[np.ndarray]] = [[] for _ in wanted]
+        trailer: dict[str, str] = {}
+        complete = False
+        rows_done = 0
+        held: str | None = None  # the last data line, parsed once we know whether it was cut off
+        chunk: list[str] = []
+
+        def flush_chunk() -> None:
+            nonlocal rows_done
+            if not chunk:
+                return
+            try:
+                data = np.loadtxt(chunk, delimiter=",", ndmin=2, usecols=None)
+            except ValueError as exc:
+                raise _garbled(source, names, chunk, exc, rows_done) from None
+            if data.shape[1] != len(names):
+                raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)} "
+                                 f"({','.join(names)})")
+            for slot, j in enumerate(wanted):
+                parts[slot].append(data[:, j].copy())
+            rows_done += len(data)
+            need = rows_done * len(wanted) * 8
+            if size_hint and rows_done == len(data):  # first chunk: estimate the whole file from its size
+                per_row = max(1.0, consumed_data / max(1, rows_done))
+                need = int(size_hint / per_row) * len(wanted) * 8
+            if need > budget:
+                est = need // (len(wanted) * 8)
+                raise TraceError(f"{source}: {est} rows x {len(wanted)} columns need {need / 1e6:.0f} MB in memory, "
+                                 f"more than readers take ({budget / 1e6:.0f} MB; raise {BUDGET_ENV} or cut the "
+                                 "trace into parts)")
+            chunk.clear()
+
+        consumed_data = 0
+        for line in lines:
+            if held is not None:
+                chunk.append(held)
+                held = None
+                if len(chunk) >= CHUNK_ROWS:
+                    flush_chunk()
+            if line.startswith("#"):
+                if line.strip() == END_MARKER:
+                    complete = True
+                else:
+                    _meta_line(line, trailer)
+                continue
+            if not line.strip():
+                continue
+            if complete or trailer:
+                raise TraceError(f"{source}: data row after the trailer (data row {rows_done + len(chunk) + 1})")
+            consumed_data += len(line)
+            held = line
+        if held is not None:
+            if held.endswith("\n") or not streamed or complete:
+                chunk.append(held)
+            # else: a streamed trace cut mid-row by a kill: the row was never whole, drop it
+        flush_chunk()
+        if rows_done == 0:
             raise TraceError(f"{source}: no data rows")
-        try:
-            data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2)
-        except ValueError as exc:
-            raise _garbled(source, names, rows, exc) from None
-        if data.shape[1] != len(names):
-            raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)} "
-                             f"({','.join(names)})")
-        columns = {name: data[:, j].copy() for j, name in enumerate(names)}
+        meta.update(trailer)
+        if streamed:
+            meta["trace_complete"] = "true" if complete else "false"
+            if not complete:
+                meta.setdefault("stop", "incomplete")
+                meta.setdefault("stop_detail", "the recording ended without its trailer (the writer was killed "
+                                "or is still running): rows up to its last flush")
+        columns: dict[str, np.ndarray] = {}
+        for slot, j in enumerate(wanted):
+            columns[names[j]] = np.concatenate(parts[slot]) if len(parts[slot]) > 1 else parts[slot][0]
+            parts[slot] = []
         for name in REQUIRED:
             bad = ~np.isfinite(columns[name])
             if bad.any():
                 row = int(np.argmax(bad))
                 raise TraceError(f"{source}: column {name}: not a finite number at data row {row + 1}")
-        t = columns["time_s"]
-        if len(t) > 1 and np.any(np.diff(t) <= 0):
-            row = int(np.argmax(np.diff(t) <= 0)) + 2
-            raise TraceError(f"{source}: column time_s: not increasing at data row {row}")
+        _check_time(columns["time_s"], meta, source)
         return cls(columns, meta, source)
 
 
-def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError) -> TraceError:
-    """The first data row that numpy could not read, with the column at fault."""
-    for r, row in enumerate(rows, 1):
+def max_read_bytes() -> int:
+    """The memory a reader may take for a trace's columns: ${BUDGET_ENV} MB, default 1024 MB."""
+    try:
+        mb = float(os.environ.get(BUDGET_ENV, "1024"))
+    except ValueError:
+        mb = 1024.0
+    return int(mb * 1e6)
+
+
+def _meta_line(line: str, meta: dict[str, str]) -> None:
+    text = line.lstrip("#").strip()
+    if ":" in text and not text.startswith("drivectl trace"):
+        key, _, value = text.partition(":")
+        meta[key.strip()] = value.strip()
+
+
+def _check_dt_text(meta: dict[str, str], source: str) -> None:
+    if "dt_s" in meta:
+        try:
+            dt = float(meta["dt_s"])
+        except ValueError:
+            dt = math.nan
+        if not (math.isfinite(dt) and dt > 0):
+            raise TraceError(f"{source}: dt_s: expected a number > 0 (s), got {meta['dt_s']!r}")
+
+
+def _check_time(t: np.ndarray, meta: dict[str, str], source: str) -> None:
+    """Time strictly increasing and, when dt_s is given, stepping by dt_s (most steps within 1 %), checked
+    in slices so that a long trace takes no second copy."""
+    dt = float(meta["dt_s"]) if "dt_s" in meta else None
+    matching = steps = 0
+    step = 1 << 20
+    for a in range(0, max(0, len(t) - 1), step):
+        d = np.diff(t[a : a + step + 1])
+        bad = d <= 0
+        if bad.any():
+            row = a + int(np.argmax(bad)) + 2
+            raise TraceError(f"{source}: column time_s: not increasing at data row {row}")
+        if dt is not None:
+            matching += int(np.count_nonzero(np.abs(d - dt) <= 0.01 * dt))
+            steps += len(d)
+    if dt is not None and steps and matching * 2 < steps:
+        median = float(np.median(np.diff(t[: step + 1])))
+        raise TraceError(f"{source}: dt_s: {dt:g} s in the metadata, but the time column steps {median:g} s "
+                         f"(median; {steps - matching} of {steps} steps differ from dt_s by over 1 %): one of "
+                         "them is wrong")
+
+
+def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError, offset: int = 0) -> TraceError:
+    """The first data row that numpy could not read, with the column at fault (``offset``: data rows
+    before ``rows``)."""
+    for r, row in enumerate(rows, offset + 1):
         fields = row.split(",")
         if len(fields) < len(names):
             return TraceError(f"{source}: garbled data: data row {r} has {len(fields)} of {len(names)} fields, no "
@@ -196,10 +342,13 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temporary file beside ``path``, fsync, then rename over ``path``."""
+    """Write ``data`` to a temporary file beside ``path`` (``.NAME.PID.RANDOM.tmp``, mode 0666 less the
+    umask, as any file the user makes), fsync, then rename over ``path``. A temporary left by a killed
+    process is removed by :func:`drivectl.tools.trace_stream.clean_stale` (its pid is gone)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)

@@ -119,6 +119,7 @@ class TuneResult:
     measured: Metrics | None = None
     verified_on: str = ""
     fixed: list[str] = field(default_factory=list)
+    model_differs: bool = False  # the axis's model is not its plant (the verification then shows the mismatch)
 
     def to_json(self) -> dict[str, Any]:
         return {"axis": self.axis, "controller": self.controller, "candidates": self.candidates,
@@ -161,18 +162,19 @@ def simulate(job: _Job, gains: Mapping[str, float], profile: Any = None) -> Metr
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import run
-    from drivectl.tools.machine import open_machine, plant_specs
+    from drivectl.tools.machine import axis_model, model_specs, open_machine
     from drivectl.tools.metrics import effort_roughness, tracking_error
 
     cfg, name = job.cfg, job.axis
     ac = cfg.axis(name)
     profile = profile if profile is not None else _profile(job)
-    spec = plant_specs(cfg, [name])[name]
+    spec = model_specs(cfg, [name])[name]  # the search runs the axis's model (its model key, else its plant)
     try:
         ctrl = make_controller(job.controller, cfg.cycle_s, {**job.base, **gains}, plant=spec, axis=name)
     except SettingsError as exc:  # a cross-field rule the bounds missed: not a usable candidate
         return Metrics(math.inf, math.inf, math.inf, ok=False, detail=str(exc))
-    with open_machine(cfg, [name], sim=True, start={name: profile.start_position}) as machine:
+    with open_machine(cfg, [name], sim=True, plant=axis_model(cfg, name),
+                      start={name: profile.start_position}) as machine:
         try:
             with np.errstate(all="ignore"):
                 res = run(machine.axes[name], ctrl, profile, duration=job.duration, limits=ac.limits)
@@ -222,6 +224,11 @@ class _Guard:
         self.prev: np.ndarray | None = None
         self.k = 0
 
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        prepare = getattr(self.inner, "prepare", None)
+        if prepare is not None:
+            prepare(profile, times)
+
     def step(self, reference: Any, feedback: Any) -> np.ndarray:
         with np.errstate(all="ignore"):
             u = np.broadcast_to(np.asarray(self.inner.step(reference, feedback), dtype=float), (self.n,))
@@ -251,11 +258,11 @@ def _batch_costs(job: _Job, gains: list[dict[str, float]]) -> np.ndarray:
     """Every candidate at once on a linear plant (plant_emulator/batch.py)."""
     from drivectl.controllers.registry import make_controller
     from drivectl.plant_emulator.batch import run_batch
-    from drivectl.tools.machine import plant_specs
+    from drivectl.tools.machine import model_specs
 
     cfg, name = job.cfg, job.axis
     ac = cfg.axis(name)
-    spec = plant_specs(cfg, [name])[name]
+    spec = model_specs(cfg, [name])[name]
     plant = spec.build(cfg.cycle_s, substeps=1)
     keys = list(gains[0])
     arrays = {k: np.array([g[k] for g in gains], dtype=float) for k in keys}
@@ -273,10 +280,10 @@ def _batch_costs(job: _Job, gains: list[dict[str, float]]) -> np.ndarray:
 
 def _batch_ok(cfg: MachineConfig, axis: str) -> bool:
     from drivectl.plant_emulator.batch import check_linear
-    from drivectl.tools.machine import plant_specs
+    from drivectl.tools.machine import model_specs
 
     try:
-        check_linear(plant_specs(cfg, [axis])[axis].build(cfg.cycle_s, substeps=1))
+        check_linear(model_specs(cfg, [axis])[axis].build(cfg.cycle_s, substeps=1))
     except ValueError:
         return False
     return True
@@ -347,11 +354,11 @@ def starting_gains(cfg: MachineConfig, axis: str,
     """The axis's settings table for ``controller`` and the starting values of its tuned gains
     (as the controller actually runs them: model-based controllers add their paper's table)."""
     from drivectl.controllers.registry import make_controller
-    from drivectl.tools.machine import plant_specs
+    from drivectl.tools.machine import model_specs
 
     ac = cfg.axis(axis)
     base = dict(ac.controller_settings) if controller == ac.controller else {}
-    spec = plant_specs(cfg, [axis])[axis]
+    spec = model_specs(cfg, [axis])[axis]
     ctrl = make_controller(controller, cfg.cycle_s, base, plant=spec, axis=axis,
                            source=f"{cfg.source}: axes.{axis}.controller_settings")
     full = ctrl.settings.as_dict()
@@ -437,6 +444,9 @@ def tune(
     result = TuneResult(axis_name, name, len(pts), wall, duration, weight, method, dict(start), dict(best),
                         predicted, start_metrics, costs, bounds, {**base, **best}, fixed=fixed)
     if verify:
+        from drivectl.tools.machine import axis_model
+
+        result.model_differs = axis_model(cfg, axis_name) != cfg.axis(axis_name).plant
         result.measured, result.verified_on = verify_gains(cfg, axis_name, name, result.settings, duration,
                                                            weight, sim=sim)
     return result
@@ -475,12 +485,12 @@ def verify_gains(cfg: MachineConfig, axis: str, controller: str, settings: Mappi
     """One trace of ``settings`` on the axis (bus or SimAxis) and its metrics under the same cost."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import run
-    from drivectl.tools.machine import axis_profile, open_machine, plant_specs
+    from drivectl.tools.machine import axis_profile, model_specs, open_machine
     from drivectl.tools.metrics import effort_roughness, tracking_error
 
     ac = cfg.axis(axis)
     profile = axis_profile(cfg, axis)
-    spec = plant_specs(cfg, [axis])[axis]
+    spec = model_specs(cfg, [axis])[axis]  # the controller believes the model; the axis plays its plant
     ctrl = make_controller(controller, cfg.cycle_s, dict(settings), plant=spec, axis=axis)
     with open_machine(cfg, [axis], sim=sim, start={axis: profile.start_position}) as machine:
         res = run(machine.axes[axis], ctrl, profile, duration=duration, limits=ac.limits)
@@ -553,7 +563,9 @@ def report(result: TuneResult) -> str:
             out.append(f"verification on {r.verified_on}: STOPPED ({m.detail})")
         else:
             rel = abs(m.cost - p.cost) / max(abs(p.cost), 1e-12)
-            if "SimAxis" in r.verified_on:
+            if r.model_differs:
+                note = " (the axis plays its plant, the search ran its model: the gap is the mismatch)"
+            elif "SimAxis" in r.verified_on:
                 note = " (SimAxis runs the model itself: they must agree)"
             elif "emulated" in r.verified_on:
                 note = " (the emulated drive's plant is the model: they should agree; a gap is a bus/drive bug)"
@@ -585,8 +597,13 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help=f"w, um of max error per per mille of effort roughness (default {DEFAULT_WEIGHT})")
     p.add_argument("--no-verify", action="store_true", help="skip the verification trace on the axis")
     p.add_argument("--sim", action="store_true", help="verify on SimAxis instead of the configured bus")
+    p.add_argument("--model", metavar="NAME|FILE", help="the model the search runs and the controller believes "
+                   "(default: the axis's model key, else its plant); the verification runs on the axis")
     p.add_argument("--out", metavar="TOML", help="where to write the gains (default traces/tune-AXIS.toml)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--write-config", nargs="?", const="", metavar="FILE",
+                   help="also merge the gains (and the controller) into axes.AXIS of FILE (default: the --config "
+                   "in use), comments kept, the old file backed up as FILE.STAMP.bak")
     return p
 
 
@@ -595,18 +612,24 @@ def cmd_tune(args: argparse.Namespace) -> int:
     axis; 2 bad input, with one line on stderr."""
     from drivectl.controllers.base import SettingsError
     from drivectl.controllers.servo import LimitError
-    from drivectl.driver.axis import AxisError
+    from drivectl.driver.axis import AxisConfigError, AxisError
     from drivectl.plant_emulator.models import PlantError
     from drivectl.profiles.base import ProfileError
     from drivectl.tools.config import ConfigError, load_config
     from drivectl.tools.trace import atomic_write_text
 
     try:
-        cfg = load_config(getattr(args, "config", None))
+        from drivectl.tools.machine import with_model
+
+        cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
+        if getattr(args, "write_config", None) is not None:  # before the search and the verification run
+            from drivectl.tools.config_io import target_file
+
+            args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
         res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                    seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
                    progress=sys.stderr.isatty())
-    except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError) as exc:
+    except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     except AxisError as exc:
@@ -614,11 +637,26 @@ def cmd_tune(args: argparse.Namespace) -> int:
         return 1
     out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
     atomic_write_text(out, settings_toml(res))
+    merged = ""
+    if getattr(args, "write_config", None) is not None:  # tools/config_io.py: comments kept, old file backed up
+        from drivectl.tools.config_io import merge_into, target_file
+
+        try:
+            target = target_file(args.write_config, getattr(args, "config", None))
+            backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
+                                note=f"tuned by drivectl tune ({res.candidates} candidates)")
+        except ConfigError as exc:
+            print(f"drivectl: {exc}", file=sys.stderr)
+            return 2
+        merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
+            f" (old file kept as {backup})" if backup else "")
     if args.json:
         print(json.dumps(res.to_json()))
     else:
         print(report(res), end="")
         print(f"wrote {out}")
+        if merged:
+            print(merged)
     if res.measured is not None and not res.measured.ok:
         print(f"drivectl: verification stopped: {res.measured.detail}", file=sys.stderr)
         return 1

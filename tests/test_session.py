@@ -1,0 +1,426 @@
+"""Issue 15 points 2-5: the resident loop and the Python API, against the emulated drives.
+
+Lockstep clock (simulated time, deterministic) unless a test says otherwise; every connect() opens its
+own virtual channel (tools/machine.py: unique_virtual_channel)."""
+
+from __future__ import annotations
+
+import signal
+import tomllib
+
+import numpy as np
+import pytest
+
+import drivectl
+from drivectl.controllers.capture import CaptureError
+from drivectl.controllers.loop import MotionFault
+from drivectl.controllers.servo import LimitError
+from drivectl.driver.axis import AxisError
+from drivectl.driver.cia402 import PowerState
+from drivectl.profiles.ptp import PointToPoint
+from drivectl.tools.config import DEFAULT_CONFIG_TOML, parse_config
+from drivectl.tools.trace import Trace
+
+
+def config(controller: str = "pid-dob", **motion: float):
+    """The embedded machine with x under a controller with integral action (asmc holds ~4 um off
+    against the x plant's Coulomb friction: no integrator), optional [axes.x.motion] keys."""
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    data["axes"]["x"]["controller"] = controller
+    data["axes"]["x"]["controller_settings"] = {}
+    if motion:
+        data["axes"]["x"]["motion"] = motion
+    return parse_config(data, "<test>")
+
+
+@pytest.fixture
+def machine(tmp_path):
+    with drivectl.connect(config(), axes=["x"], fault_dir=tmp_path) as m:
+        yield m
+
+
+def test_enable_holds_position_and_status(machine):
+    x = machine.axes["x"]
+    assert x.power is PowerState.SWITCH_ON_DISABLED and x.state == "off"
+    x.enable()
+    assert x.power is PowerState.OPERATION_ENABLED and x.state == "servo"
+    start = x.position
+    machine.advance(0.5)
+    assert abs(x.position - start) < 1e-6  # held under its controller
+    st = machine.status()
+    assert st["clock"].startswith("lockstep") and st["cycles"] > 500
+    assert st["missed_deadlines"] == 0 and st["axes"]["x"]["state"] == "servo"
+
+
+@pytest.mark.parametrize("target", [0.02, -0.015])
+def test_move_to_and_move_by_end_within_1um(machine, target):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(target).wait(timeout=5)
+    assert h.status == "done" and h.settled, h.detail
+    machine.advance(0.2)
+    assert abs(x.position - target) < 1e-6
+    h = x.move_by(0.004).wait(timeout=5)
+    assert h.settled
+    machine.advance(0.2)
+    assert abs(x.position - (target + 0.004)) < 1e-6
+
+
+def test_jog_stops_by_itself_unless_renewed(machine):
+    x = machine.axes["x"]
+    x.enable()
+    j = x.jog(0.01)
+    machine.advance(0.15)
+    assert x.velocity == pytest.approx(0.01, rel=0.05)
+    machine.advance(0.5)  # not renewed: the dead man (0.2 s) stopped it
+    assert j.done and j.status == "stopped"
+    assert abs(x.velocity) < 1e-4
+    travelled = x.position
+    assert 0.0018 < travelled < 0.0025  # 0.2 s at 10 mm/s, plus the braking
+    # renewed every 0.1 s for 1 s: it keeps moving the whole time
+    j = x.jog(-0.01)
+    for _ in range(10):
+        machine.advance(0.1)
+        assert x.velocity == pytest.approx(-0.01, rel=0.05)
+        assert x.jog(-0.01) is j
+    assert not j.done
+    x.stop().wait(1)
+    machine.advance(0.1)
+    assert j.status == "stopped" and abs(x.velocity) < 1e-4
+    assert x.position == pytest.approx(travelled - 0.0100, abs=0.0006)
+
+
+def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
+    with drivectl.connect(config(max_velocity_m_s=0.2), axes=["x"], fault_dir=tmp_path) as m:
+        x = m.axes["x"]
+        x.enable()
+        j = x.jog(0.2)
+        for _ in range(12):
+            m.advance(0.1)
+            x.jog(0.2)
+        lo, hi = x.limits.position
+        assert j.done and x.state == "servo"  # stopped at the limit, no fault
+        assert hi - 0.0011 < x.position < hi
+
+
+def test_moves_outside_the_limits_are_refused_before_anything_moves(machine):
+    x = machine.axes["x"]
+    with pytest.raises(AxisError, match="not enabled"):
+        x.move_to(0.01)
+    x.enable()
+    with pytest.raises(LimitError, match=r"outside the soft limits \[-0.1, 0.1\]"):
+        x.move_to(0.5)
+    with pytest.raises(LimitError, match="max_velocity"):
+        x.jog(5.0)
+    machine.advance(0.1)
+    assert abs(x.position) < 1e-6
+
+
+def test_stop_is_controlled_and_the_axis_holds(machine):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(0.05)
+    machine.advance(0.3)
+    s = x.stop().wait(1)
+    assert h.status == "stopped" and s.status == "done"
+    assert 0.005 < x.position < 0.05 and abs(x.velocity) < 1e-4
+    here = x.position
+    machine.advance(0.3)
+    assert abs(x.position - here) < 2e-6
+
+
+def test_relative_run_of_a_profile(machine):
+    x = machine.axes["x"]
+    x.enable()
+    x.move_to(0.01).wait(5)
+    prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.4)
+    with pytest.raises(LimitError, match="starts at"):
+        x.run(prof)  # absolute: the axis is not at the start
+    h = x.run(prof, relative=True, record=machine.loop.fault_dir).wait(5)
+    assert h.status == "done"
+    tr = h.trace
+    streamed = Trace.read(h.path)
+    assert streamed.meta["stop"] == "done" and np.allclose(streamed.pos, tr.pos, rtol=0, atol=1e-9)
+    assert isinstance(tr, Trace) and len(tr) == round(0.4 / 0.001) + 1
+    assert tr.ref[0] == pytest.approx(0.01, abs=1e-9) and tr.ref[-1] == pytest.approx(0.015, abs=1e-9)
+    assert np.max(np.abs(tr.error)) < 50e-6
+    machine.advance(0.2)
+    assert abs(x.position - 0.015) < 1e-6
+
+
+def test_absolute_run_with_approach(machine):
+    x = machine.axes["x"]
+    x.enable()
+    prof = PointToPoint(0.01, 0.0, 0.05, 0.5, 20.0, hold_until=0.3)
+    h = x.run(prof, approach=True).wait(5)
+    assert h.status == "done" and h.trace.ref[0] == pytest.approx(0.01)
+    assert abs(h.trace.pos[0] - 0.01) < 5e-6  # the approach ended at the start
+
+
+def test_capture_on_a_move_start(machine, tmp_path):
+    x = machine.axes["x"]
+    x.enable()
+    cap = x.capture(channels=("reference", "position", "following_error", "velocity", "torque", "statusword"),
+                    trigger="move", pre=0.05, post=0.2)
+    machine.advance(0.1)
+    assert not cap.done  # armed: no move yet
+    x.move_to(0.005)
+    tr = cap.wait(1)
+    assert len(tr) == 50 + 1 + 200
+    assert tr.time[50] == 0.0 and tr.time[0] == pytest.approx(-0.05)
+    assert np.all(tr.ref[:50] == 0.0) and tr.ref[50] >= 0.0 and tr.ref[-1] > 0.0
+    assert {"following_error_m", "vel_m_s", "torque_actual", "statusword"} <= set(tr.columns)
+    assert np.all(tr.columns["statusword"][:] == tr.columns["statusword"][0])
+    paths = cap.write(tmp_path / "cap.csv")
+    assert Trace.read(paths[0]).meta["capture_trigger"] == "move" and paths[1].suffix == ".png"
+    with pytest.raises(CaptureError, match="longer than the ring"):
+        x.capture(pre=10, post=1)
+
+
+def test_level_trigger_capture(machine):
+    x = machine.axes["x"]
+    x.enable()
+    cap = x.capture(trigger="position>0.002", pre=0.01, post=0.01)
+    x.move_to(0.004).wait(5)
+    tr = cap.wait(1)
+    assert tr.pos[9] < 0.002 <= tr.pos[10]
+
+
+def test_capture_around_an_injected_fault_and_the_fault_ring_on_disk(tmp_path):
+    with drivectl.connect(config(), axes=["x"], fault_dir=tmp_path, faults=["emcy-fault@0.3"]) as m:
+        x = m.axes["x"]
+        cap = x.capture(trigger="fault", pre=0.2)
+        x.enable()
+        h = x.move_to(0.05)
+        with pytest.raises(MotionFault, match="drive fault") as exc:
+            h.wait(2)
+        assert exc.value.fault.kind == "drive fault"
+        assert exc.value.fault.safe_state["x"] in ("Fault", "Switch On Disabled")
+        assert x.state == "off" and x.fault is not None
+        tr = cap.wait(0)
+        assert len(tr) == 201 and tr.time[-1] == 0.0
+        assert tr.ref[-1] > 0 and "drive fault" in tr.meta["capture_detail"]
+        files = m.loop.flush()
+        assert len(files) == 1 and files[0].name.startswith("x-fault-")  # the armed capture, on disk
+        assert len(Trace.read(files[0])) == 201
+        with pytest.raises(AxisError, match="fault_reset first"):
+            x.enable()
+        x.fault_reset()
+        x.enable()
+        x.move_to(0.001).wait(5)
+
+
+def test_ctrl_c_during_a_move_stops_it_and_the_context_disables(tmp_path):
+    m = drivectl.connect(config(), axes=["x"], fault_dir=tmp_path)
+    x = m.axes["x"]
+    inner = m.loop.axes["x"].ch.controller
+    calls = {"n": 0}
+    step = inner.step
+
+    def step_with_signal(ref, fb):
+        calls["n"] += 1
+        if calls["n"] == 200:
+            signal.raise_signal(signal.SIGINT)  # as if Ctrl-C came in the middle of the cycle
+        return step(ref, fb)
+
+    inner.step = step_with_signal
+    with pytest.raises(KeyboardInterrupt):
+        with m:
+            x.enable()
+            h = x.move_to(0.05)
+            h.wait(5)
+    assert h.status == "stopped" and "SIGINT" in h.detail
+    assert x.power is PowerState.SWITCH_ON_DISABLED
+    assert abs(x.position) < 0.05  # it did not finish the move
+
+
+def test_an_exception_inside_the_context_disables_every_axis(tmp_path):
+    with pytest.raises(ZeroDivisionError):
+        with drivectl.connect(config(), axes=["x", "y"], fault_dir=tmp_path) as m:
+            for ax in m.axes.values():
+                ax.enable()
+            m.axes["x"].move_to(0.01)
+            m.advance(0.05)
+            raise ZeroDivisionError("a bug in the user's program")
+    assert all(ax.power is PowerState.SWITCH_ON_DISABLED for ax in m.axes.values())
+    assert m.hardware.axes["x"].network.bus is None  # the bus is shut down
+
+
+def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
+    """The threaded loop on the wall clock: outcome only (no timing asserted)."""
+    with drivectl.connect(config(), axes=["x"], clock="wall", fault_dir=tmp_path, stall_s=1.0) as m:
+        x = m.axes["x"]
+        x.enable()
+        h = x.move_to(0.002).wait(timeout=20)
+        assert h.status == "done"
+        st = m.status()
+        assert st["clock"].startswith("wall") and st["cycles"] > 100
+        assert {"missed_deadlines", "worst_late_ms", "stalls", "gc_collections"} <= set(st)
+        assert "gc" in st["granted"]
+    assert x.power is PowerState.SWITCH_ON_DISABLED
+
+
+def homing_config(method: str, **homing):
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    x = data["axes"]["x"]
+    x["controller"], x["controller_settings"] = "pid-dob", {}
+    x["homing"] = {"method": method, **homing}
+    # the emulated drive: home switch active at and below -12 mm, mechanical stop at -30 mm
+    x["emulator"] = {"home_switch_m": -0.012, "limit_switches_m": [-0.095, 0.095], "hard_stops_m": [-0.03, 0.12]}
+    return parse_config(data, "<test>")
+
+
+def test_home_here_sets_the_coordinates(tmp_path):
+    with drivectl.connect(homing_config("here", position_m=0.05), axes=["x"], fault_dir=tmp_path,
+                          start={"x": 0.003}) as m:
+        x = m.axes["x"]
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done"
+        assert x.position == pytest.approx(0.05, abs=1e-6)
+        x.move_by(0.01).wait(5)
+        m.advance(0.2)
+        assert x.position == pytest.approx(0.06, abs=1e-6)
+        assert m.hardware.drives["x"].drive.position == pytest.approx(0.013, abs=2e-6)  # the drive's own
+
+
+def test_home_on_the_home_switch_from_0x60FD(tmp_path):
+    with drivectl.connect(homing_config("switch", position_m=0.0, speed_m_s=0.02), axes=["x"],
+                          fault_dir=tmp_path, start={"x": 0.01}) as m:
+        x = m.axes["x"]
+        assert m.hardware.drives["x"].drive.digital_inputs() == 0
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done", h.detail
+        m.advance(0.2)
+        drive = m.hardware.drives["x"].drive
+        # home (0.0) is the switch's edge at -12 mm of the drive, to a creep cycle (1 mm/s x 1 ms)
+        assert drive.position == pytest.approx(-0.012, abs=3e-6)
+        assert x.position == pytest.approx(0.0, abs=3e-6)
+        x.move_by(0.001).wait(5)
+        assert drive.digital_inputs() & 4 == 0  # off the cam
+        x.move_by(-0.002).wait(5)
+        assert drive.digital_inputs() & 4 == 4  # on it
+        # the soft limits hold again after homing
+        with pytest.raises(LimitError):
+            x.move_to(0.2)
+
+
+def test_home_against_the_hard_stop_by_following_error(tmp_path):
+    with drivectl.connect(homing_config("hard-stop", position_m=-0.02, speed_m_s=0.005, hard_stop_effort=300.0),
+                          axes=["x"], fault_dir=tmp_path, start={"x": -0.025}) as m:
+        x = m.axes["x"]
+        x.enable()
+        h = x.home().wait(1)
+        assert h.status == "done", h.detail
+        m.advance(0.2)
+        drive = m.hardware.drives["x"].drive
+        # the stop (-30 mm of the drive) is -20 mm of the axis; it backed off 1 mm
+        assert x.position == pytest.approx(-0.019, abs=2e-6)
+        assert drive.position == pytest.approx(-0.029, abs=1e-5)
+        assert x.state == "servo" and x.limits.following_error == 0.001  # limits restored
+
+
+def test_homing_switch_not_found_is_one_error(tmp_path):
+    with drivectl.connect(homing_config("switch", direction="positive", max_travel_m=0.01), axes=["x"],
+                          fault_dir=tmp_path) as m:
+        x = m.axes["x"]
+        x.enable()
+        with pytest.raises(Exception, match="home switch not found within 10 mm"):
+            x.home().wait(1)
+        assert x.state == "servo"
+
+
+def test_approach_plans_a_visible_move_to_the_profile_start_and_the_run_follows():
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel, plan_run, run_channels
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+
+    cfg = config()
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), initial_position=0.03)
+    ctrl = make_controller("pid-dob", 0.001, {}, plant=spec, axis="x")
+    prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.3)
+    ch = Channel(axis, ctrl, prof, cfg.axis("x").limits)
+    approach, moves = plan_approach([ch], where_axes_stand([ch]), {"x": cfg.axis("x").motion})
+    assert moves == ["approach: axis x from 30.000 mm to its profile's start 0.000 mm (30.000 mm, 0.42 s at up "
+                     "to 100 mm/s)"]
+    with pytest.raises(LimitError, match="--no-approach; nothing moved"):
+        consent(False, moves)
+    with pytest.raises(LimitError, match="use --approach"):
+        consent(None, moves)  # no terminal here: refused, naming the flag
+    assert axis.power is PowerState.SWITCH_ON_DISABLED
+    consent(True, moves)
+    plan = plan_run([ch])
+    first = run_channels(approach, disable_at_end=False)
+    assert first.ok and abs(first.trace.pos[-1]) < 5e-6
+    res = run_channels(plan)
+    assert res.ok and abs(res.trace.pos[0]) < 5e-6 and abs(res.trace.pos[-1] - 0.005) < 5e-6
+
+
+def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
+    """The stall is injected through the loop's clock (a jump of 10 s between two cycles), so the
+    outcome does not depend on how busy the machine is."""
+    import time
+
+    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), name="x")
+    ch = Channel(axis, make_controller("pid-dob", 0.001, {}, plant=spec, axis="x"), None, config().axis("x").limits)
+    jump = {"s": 0.0}
+    loop = ServoLoop([ch], clock="wall", stall_s=5.0, now=lambda: time.perf_counter() + jump["s"])
+    loop.start()
+    try:
+        rt = loop.axes["x"]
+        rt.state = AxisState.ENABLING
+        loop.submit(axis.enable)
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
+        jump["s"] = 10.0  # the next cycle starts 10 s after the last one, as far as the loop can tell
+        assert loop.run_until(lambda: loop.faults, 10.0)
+        fault = loop.faults[0]
+        assert fault.kind == "servo loop stalled" and "no cycle for 100" in fault.detail
+        assert fault.safe_state["x"] in ("Switch On Disabled", "Quick Stop Active")
+        assert rt.state is AxisState.OFF and loop.status()["stalls"] == 1
+    finally:
+        loop.close()
+    assert axis.power is PowerState.SWITCH_ON_DISABLED
+
+
+def test_a_controller_that_raises_stops_every_axis_instead_of_killing_the_loop(machine):
+    x = machine.axes["x"]
+    x.enable()
+    h = x.move_to(0.01)
+    machine.advance(0.05)
+
+    def broken(ref, fb):
+        raise FloatingPointError("nan in the state")
+
+    machine.loop.axes["x"].ch.controller.step = broken
+    with pytest.raises(MotionFault, match="FloatingPointError"):
+        h.wait(1)
+    assert x.state == "off" and x.power in (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE)
+    machine.advance(0.05)  # the loop goes on cycling the (disabled) axis
+    assert machine.status()["faults"] == 1
+
+
+def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
+    with drivectl.connect(config(), axes=["x", "y"], fault_dir=tmp_path, faults=["y/emcy-fault@0.4"],
+                          ring_s=0.25) as m:
+        for ax in m.axes.values():
+            ax.enable()
+        h = m.axes["x"].move_to(0.02)
+        with pytest.raises(MotionFault):
+            h.wait(2)
+        files = sorted(m.loop.flush())
+    assert [f.name.split("-fault-")[0] for f in files] == ["x", "y"]  # every axis, the ring's last 0.25 s
+    tr = Trace.read(files[0])
+    assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
+    assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
+    assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)

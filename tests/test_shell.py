@@ -1,0 +1,153 @@
+"""drivectl shell driven through standard input (a script), on the emulated drives in lockstep."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from drivectl.tools.cli import main
+from drivectl.tools.quantity import QuantityError, parse_quantity
+from drivectl.tools.trace import Trace
+
+
+def shell(monkeypatch, capsys, script: str, *args: str) -> tuple[int, list[str], str]:
+    monkeypatch.setattr(sys, "stdin", io.StringIO(script))
+    rc = main(["shell", "--axis", "x", *args])
+    cap = capsys.readouterr()
+    return rc, [ln for ln in cap.out.splitlines() if ln], cap.err
+
+
+def position_mm(line: str) -> float:
+    return float(line.split(" at ")[1].split(" mm")[0])
+
+
+def test_quantities_take_only_their_units():
+    assert parse_quantity("20mm", "position") == pytest.approx(0.02)
+    assert parse_quantity("-5 mm/s", "velocity") == pytest.approx(-0.005)
+    assert parse_quantity("250ms", "time") == pytest.approx(0.25)
+    for bad, kind in (("20", "position"), ("5mm/s", "position"), ("5mm", "velocity"), ("nan mm", "position"),
+                      ("", "time")):
+        with pytest.raises(QuantityError):
+            parse_quantity(bad, kind)
+
+
+def test_script_enable_move_jog_and_exit_disables(monkeypatch, capsys, tmp_path):
+    rc, out, err = shell(monkeypatch, capsys, "enable x\nmove x 20mm\nmove-by x -5mm\njog x 5mm/s 0.3s\n"
+                         "status x\nexit\n", "--out", str(tmp_path))
+    assert rc == 0, (out, err)
+    assert out[0] == "x: Operation Enabled, holding 0.0000 mm"
+    assert out[1].startswith("x: move to 20.0000 mm done")
+    assert abs(position_mm(out[1]) - 20.0) < 0.01
+    assert out[2].startswith("x: move by -5.0000 mm done")
+    assert abs(position_mm(out[2]) - 15.0) < 0.01
+    # 0.3 s at 5 mm/s, renewed inside the dead-man interval, then a controlled stop: about 1.5 mm further
+    jog_end = float(out[3].split("stopped at ")[1].split(" mm")[0])
+    assert out[3].startswith("x: jogged 0.300 s at 5.000 mm/s") and 16.0 < jog_end < 17.0
+    assert out[4].startswith("x: servo, Operation Enabled")
+    assert "missed deadlines 0" in out[5]
+    assert "closed: x Switch On Disabled" in err  # what the drive reported when the session closed
+
+
+def test_a_failing_command_is_one_line_and_the_session_goes_on(monkeypatch, capsys, tmp_path):
+    rc, out, _ = shell(monkeypatch, capsys, "move x 20mm\nbogus 1\nenable x\nmove x 20\nmove q 1mm\n"
+                       "move x 0.5m\njog x 1m/s\nmove x 2mm speed=fast\nmove x 2mm\n", "--out", str(tmp_path))
+    assert rc == 1  # a script with a failed command says so in its exit code
+    errors = [ln for ln in out if ln.startswith("error: ")]
+    assert errors == [
+        "error: axis x: move_to: not enabled (enable() first)",
+        "error: bogus: unknown command (help lists them)",
+        "error: position: '20' needs a unit (m, mm, um, µm, nm), e.g. 20mm",
+        "error: axis 'q': not on this machine (axes: x)",
+        errors[4],
+        errors[5],
+        errors[6],
+    ]
+    assert "outside the soft limits" in errors[4] and "nothing moved" in errors[4]
+    assert "jog: |velocity| must be <=" in errors[5]
+    assert errors[6].startswith("error: speed: 'fast' is not a number")
+    assert out[-1].startswith("x: move to 2.0000 mm done")  # it still works after every refusal
+
+
+def test_capture_around_a_move_is_written_with_its_plot(monkeypatch, capsys, tmp_path):
+    cap = tmp_path / "cap.csv"
+    rc, out, _ = shell(monkeypatch, capsys, f"enable x\ncapture x trigger=move pre=20ms post=100ms out={cap}\n"
+                       "wait 50ms\nmove x 1mm\n", "--out", str(tmp_path))
+    assert rc == 0, out
+    assert out[1] == f"x: capture armed (trigger move) -> {cap}"
+    assert out[4] == f"wrote {cap}, {cap.with_suffix('.png')}"
+    tr = Trace.read(cap)
+    assert len(tr) == 20 + 1 + 100 and tr.meta["capture_trigger"] == "move"
+
+
+def test_relative_run_and_plot(monkeypatch, capsys, tmp_path):
+    rc, out, _ = shell(monkeypatch, capsys, "enable x\nmove x 5mm\nrun x short-move relative\nplot\n",
+                       "--out", str(tmp_path))
+    assert rc == 0, out
+    run_line = next(ln for ln in out if ln.startswith("x: run short-move"))
+    assert " done in " in run_line
+    written = next(ln for ln in out if ln.startswith("wrote ") and ln.endswith(".csv"))
+    tr = Trace.read(written.split(" ", 1)[1])
+    assert tr.ref[0] == pytest.approx(0.005, abs=1e-7)  # the profile shifted to where the axis stood
+    assert out[-1].startswith("wrote ") and out[-1].endswith(".png")
+
+
+def test_ctrl_c_during_a_move_stops_the_axis_and_keeps_the_session(tmp_path):
+    script = "enable x\nmove x 90mm speed=1mm/s &\nwait 100s\nstatus x\nexit\n"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl.tools.cli", "shell", "--axis", "x", "--out",
+                             str(tmp_path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    assert proc.stdin is not None and proc.stdout is not None
+    proc.stdin.write(script)
+    proc.stdin.close()
+    proc.stdin = None  # written whole: communicate() below only reads
+    first = proc.stdout.readline()
+    assert first.startswith("x: Operation Enabled"), first
+    assert proc.stdout.readline().startswith("x: move to 90.0000 mm started")
+    proc.send_signal(signal.SIGINT)  # the 90 s (simulated) move is under way, the wait about to run it
+    rest, err = proc.communicate(timeout=120)
+    lines = rest.splitlines()
+    assert proc.returncode == 1, (rest, err)
+    assert lines[0].startswith("interrupted: x servo at "), lines
+    stopped_at = float(lines[0].split(" at ")[1].split(" mm")[0])
+    assert 0 <= stopped_at < 90  # a controlled stop long before the target
+    assert lines[1] == "waited 100 s" or lines[1].startswith("x: servo")  # the session went on
+    assert lines[-2].startswith("x: servo, Operation Enabled")  # holding where it stopped
+    assert float(lines[-2].split("position ")[1].split(" mm")[0]) == pytest.approx(stopped_at, abs=0.01)
+    assert "closed: x Switch On Disabled" in err
+
+
+def test_shell_refuses_a_bad_axis_flag_before_connecting(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "stdin", io.StringIO("enable x\n"))
+    rc = main(["shell", "--axis", "x,x"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "--axis" in err[0]
+
+
+def test_live_view_is_quiet_when_output_is_not_a_terminal():
+    from drivectl.tools.live import QuietView, open_live_view
+
+    assert isinstance(open_live_view(object(), io.StringIO()), QuietView)
+
+
+def test_the_live_window_draws_what_it_is_fed(tmp_path):
+    pytest.importorskip("matplotlib")
+    import multiprocessing as mp
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from drivectl.tools.live import window_main
+
+    q = mp.get_context("spawn").Queue()
+    for k in range(5):
+        q.put((k * 0.05, [(0.001 * k, 1e-6 * k)]))
+    q.put(None)
+    window_main(q, ["x"], max_frames=3)  # returns: the end marker was read, nothing blocked
+    assert Path(tmp_path).exists()

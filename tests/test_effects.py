@@ -38,7 +38,8 @@ def test_vocabulary_is_the_design_table():
                           "offset", "spring", "resonance", "saturation")
     expected = {
         "stribeck": ("excess_force", "velocity"), "backlash": ("width",), "periodic": ("amplitude", "period"),
-        "mass": ("mass",), "viscous": ("scale",), "coulomb": ("force_pos", "force_neg"), "delay": ("delay",), "offset": ("force",),
+        "mass": ("mass",), "viscous": ("scale",), "coulomb": ("force_pos", "force_neg"), "delay": ("delay",),
+        "offset": ("force",),
         "spring": ("stiffness",), "resonance": ("frequency", "damping"), "saturation": ("limit",),
     }
     assert {name: e.required for name, e in EFFECTS.items()} == expected

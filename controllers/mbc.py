@@ -164,6 +164,8 @@ class Mbc(Controller):
     name = "mbc"
     origin = "model-based (exact inverse + Kalman + LQR)"
     SettingsClass = MbcSettings
+    #: the gains come from a design (Riccati equations), not array maths: no batch of gain sets
+    batch_settings = False
 
     def __init__(self, dt: float, settings: Settings | Mapping[str, Any] | None = None, *, model: Any = None,
                  **kwargs: Any):

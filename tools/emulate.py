@@ -203,6 +203,15 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         log_sent_frames(net, log)  # stamped when sent, on the clock received frames are restamped with
     for drive in drives:
         drive.boot()
+    # power-on: the drives are announced once booted (their boot-up sent), so a master that connects on
+    # the announcement finds them answering, not a boot-up from before its reset command
+    import time
+
+    booting_until = time.monotonic() + 2.0
+    while any(d.nmt == 0 for d in drives) and time.monotonic() < booting_until and not stop.signum:
+        for drive in drives:
+            drive.serve()
+        time.sleep(0.002)
     nodes = ", ".join(f"{n} (node {cfg.axis(n).node_id}, {specs[n].name})" for n in names)
     print(f"emulating {nodes} on {where}", flush=True)
     print(f"point a master at it with: {hint}", flush=True)

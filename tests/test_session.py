@@ -426,3 +426,13 @@ def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
     assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
     assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
     assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)
+
+
+def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, capsys):
+    m = drivectl.connect(config(), axes=["x"], fault_dir=tmp_path)
+    with m:
+        m.axes["x"].enable()
+        m.loop.axes["x"].ch.axis.disable = lambda: None  # the command never reaches the drive
+    assert m.unconfirmed == ["x"]
+    err = capsys.readouterr().err
+    assert "axis x: the drive last reported Operation Enabled after the disable: it may still be powered" in err

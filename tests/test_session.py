@@ -101,6 +101,22 @@ def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
         lo, hi = x.limits.position
         assert j.done and x.state == "servo"  # stopped at the limit, no fault
         assert hi - 0.0011 < x.position < hi
+        held = x.jog(0.01)  # the button still held at the limit: nothing moves, nothing raises
+        assert held.done and "at the soft limit already" in held.detail
+        x.jog(-0.01)  # away from it is fine
+        m.advance(0.1)
+        assert x.velocity < 0
+
+
+def test_a_jog_renewed_while_its_dead_man_stop_is_under_way_moves_on(machine):
+    x = machine.axes["x"]
+    x.enable()
+    j = x.jog(0.02)
+    machine.advance(0.215)  # 0.2 s: the dead man began the stop (about 40 ms long); the axis decelerates
+    assert 0 < x.velocity < 0.02 and not j.done
+    assert x.jog(0.02) is j
+    machine.advance(0.15)
+    assert x.velocity == pytest.approx(0.02, rel=0.05)
 
 
 def test_moves_outside_the_limits_are_refused_before_anything_moves(machine):

@@ -10,7 +10,12 @@ detection, the fault's kind, cycle, statusword and 0x603F text in its metadata).
 
 ``--json`` prints exactly one object: {"faults": {KIND: {"detected", "safe_within_cycles",
 "trace_complete"}}}; KIND is the case as ``--fault`` spells it (``tpdo-lost:cycles=10`` is the
-N-cycle loss). Tolerated faults (one lost or late TPDO) report 0 cycles: nothing had to stop.
+N-cycle loss). Tolerated faults (one lost or late TPDO, a malformed frame) report 0 cycles: nothing
+had to stop. The cases include a second RPDO producer, a second SYNC producer, foreign NMT commands
+(Stop, Pre-operational, Reset Communication) and malformed frames (TPDO, EMCY, heartbeat, remote).
+Each run streams its trace as drivectl trace does; a dead master's ``.partial`` file counts as whole
+when it holds every row up to the injection. ``rogue-sync`` counts its cycles in the drive's SYNCs,
+which the rogue doubles.
 """
 
 from __future__ import annotations
@@ -38,21 +43,22 @@ def main() -> None:
                                               "trace_complete": o.trace_complete} for o, _ in rows}}))
         return
     kw = max(len("detected as"), *(len(o.kind) for o, _ in rows))  # columns as wide as their longest entry
+    cw = max(len("fault (--fault)"), *(len(o.case) for o, _ in rows))
     sw = max(len("state"), *(len(o.safe_state) for o, _ in rows))
-    head = (f"{'fault (--fault)':<22} {'detected as':<{kw}} {'fired':>5} {'row':>5} {'detect':>7} {'safe in':>8} "
+    head = (f"{'fault (--fault)':<{cw}} {'detected as':<{kw}} {'fired':>5} {'row':>5} {'detect':>7} {'safe in':>8} "
             f"{'state':<{sw}} {'trace':>6}")
     print(head)
     print("-" * len(head))
     for o, _ in rows:
         safe = "-" if o.safe_within_cycles is None else f"{o.safe_within_cycles} cyc"
         row = "-" if o.detect_cycle is None else str(o.detect_cycle)
-        trace = "whole" if o.trace_complete else "none"
+        trace = ("partial" if o.case == "master-dead" else "whole") if o.trace_complete else "none"
         fired = "-" if o.inject_cycle is None else str(o.inject_cycle)
         det = "-" if o.detect_after is None else f"{o.detect_after} cyc"
-        print(f"{o.case:<22} {o.kind:<{kw}} {fired:>5} {row:>5} {det:>7} {safe:>8} {o.safe_state:<{sw}} "
+        print(f"{o.case:<{cw}} {o.kind:<{kw}} {fired:>5} {row:>5} {det:>7} {safe:>8} {o.safe_state:<{sw}} "
               f"{trace:>6}")
         if o.note:
-            print(f"{'':<22} note: {o.note}")
+            print(f"{'':<{cw}} note: {o.note}")
     bad = [o.case for o, _ in rows if not (o.detected and o.safe_within_cycles is not None
                                             and o.safe_within_cycles <= SAFE_BOUND_CYCLES)]
     print(f"\nsafe within {SAFE_BOUND_CYCLES} cycles of detection: {len(rows) - len(bad)}/{len(rows)}"

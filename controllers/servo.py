@@ -19,6 +19,7 @@ three) are counted, and the fault (kind, cycle, statusword, 0x603F text) goes in
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
+from drivectl.controllers.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -48,20 +50,23 @@ class LimitError(ValueError):
     """A run was refused before anything moved (profile outside limits, axis not at the start)."""
 
 
-#: the most cycles one run records: the references are sampled and the trace is held in memory for the
-#: whole run (about 130 bytes per cycle and axis), so one hour at 1 kHz is about 0.5 GB per axis
+#: the most cycles a run records in memory (``keep=True``: 32 bytes per cycle and axis), one hour at 1 kHz
 MAX_RUN_CYCLES = 3_600_000
+#: the most cycles of a run that records only as it streams (constant memory; the limit is the file's:
+#: about 24 days at 1 kHz, some 60 GB per axis)
+MAX_STREAMED_CYCLES = 2**31 - 1
 
 
-def check_run_length(duration: float, dt: float, what: str = "run: duration") -> int:
+def check_run_length(duration: float, dt: float, what: str = "run: duration", *, streamed: bool = False) -> int:
     """The number of cycles of a run of ``duration`` s; LimitError (naming ``what``) unless it is > 0 and
-    at most MAX_RUN_CYCLES."""
+    at most MAX_RUN_CYCLES (MAX_STREAMED_CYCLES for a run that records only by streaming)."""
     if not (math.isfinite(duration) and duration > 0):
         raise LimitError(f"{what}: must be a number of seconds > 0, got {duration!r}")
     n = int(round(duration / dt)) + 1
-    if n > MAX_RUN_CYCLES:
-        raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than a run records "
-                         f"({MAX_RUN_CYCLES} cycles, {MAX_RUN_CYCLES * dt:g} s); split it into shorter runs")
+    cap, how = (MAX_STREAMED_CYCLES, "a streamed run records") if streamed else (MAX_RUN_CYCLES, "a run records")
+    if n > cap:
+        raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than {how} "
+                         f"({cap} cycles, {cap * dt:g} s); split it into shorter runs")
     return n
 
 
@@ -74,6 +79,8 @@ class Limits:
     following_error: float = 5e-3  # window, m (0x6065)
     following_time: float = 0.0  # s the error may stay outside the window (0x6066)
     max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
+    #: m: a second difference of the position beyond this is an encoder glitch (controllers/run_checks.py)
+    max_jump: float = 5e-4
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
@@ -88,6 +95,8 @@ class Limits:
             raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
         if not self.max_speed > 0:
             raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
+        if not self.max_jump > 0:
+            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
 
 
 #: power states with the torque off: where a stop must end
@@ -111,7 +120,7 @@ class Fault:
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
-            stale = self.safe_state.get(self.axis) == "unknown"
+            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
         out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
                               else "unknown (0x603F could not be read)")
@@ -176,25 +185,45 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
+#: cycles of reference sampled at a time: a run holds one chunk of its references, whatever its length
+REF_CHUNK = 8192
+
+
 @dataclass
 class RunPlan:
-    """A run checked and sampled before anything moves: the channels, the cycle times and every
-    channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths)."""
+    """A run checked before anything moves: the channels, the cycle count and, chunk by chunk, every
+    channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths; the next
+    :data:`REF_CHUNK` cycles are sampled when the cycle reaches them, so the memory does not grow with
+    the run's length). ``keep``: the run's record is also held in memory (see :class:`Recording`)."""
 
     channels: Sequence[Channel]
     dt: float
-    t: np.ndarray
-    refs: list[list[list[float]]]
+    n: int
+    refs: list[list[list[float]]] = field(default_factory=list)  # the chunk that starts at cycle ``base``
+    base: int = 0
+    keep: bool = True
 
     @property
     def cycles(self) -> int:
-        return len(self.t)
+        return self.n
+
+    @property
+    def t(self) -> np.ndarray:
+        """Every cycle's time (made when asked: a controller's preview, the in-memory record)."""
+        return np.arange(self.n) * self.dt
+
+    def load(self, k0: int) -> None:
+        """Sample the chunk of references that starts at cycle ``k0``."""
+        t = np.arange(k0, min(k0 + REF_CHUNK, self.n)) * self.dt
+        self.refs = [[a.tolist() for a in ch.profile.sample(t)] for ch in self.channels]
+        self.base = k0
 
 
-def plan_run(channels: Sequence[Channel], duration: float | None = None) -> RunPlan:
-    """Check the channels and their profiles against the limits and sample the references (LimitError
-    or ValueError, nothing moved). Planning a second run before the first ends (an approach move, then
-    the profile) lets the second follow the first within one cycle."""
+def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True) -> RunPlan:
+    """Check the channels and their profiles against the limits and sample the first references
+    (LimitError or ValueError, nothing moved). Planning a second run before the first ends (an approach
+    move, then the profile) lets the second follow the first within one cycle. ``keep=False``: the run
+    is recorded only where it streams (``run_channels(stream=...)``), at constant memory."""
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -208,13 +237,12 @@ def plan_run(channels: Sequence[Channel], duration: float | None = None) -> RunP
         total = longest.duration
         source = getattr(longest, "source", None)
         what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
-    n = check_run_length(total, dt, what)
-    t = np.arange(n) * dt
-    refs = []
+    n = check_run_length(total, dt, what, streamed=not keep)
     for ch in channels:
-        _check_profile(ch, float(t[-1]))
-        refs.append([a.tolist() for a in ch.profile.sample(t)])
-    return RunPlan(channels, dt, t, refs)
+        _check_profile(ch, (n - 1) * dt)
+    plan = RunPlan(channels, dt, n, keep=keep)
+    plan.load(0)
+    return plan
 
 
 def run_channels(
@@ -286,7 +314,10 @@ class _Outcome:
 def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
                 on_start: Callable[[int], None] | None, progress: bool) -> _Outcome:
     """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
-    channels, dt, n, refs = plan.channels, plan.dt, plan.cycles, plan.refs
+    channels, dt, n = plan.channels, plan.dt, plan.cycles
+    if plan.base:
+        plan.load(0)  # a plan run a second time
+    refs, base = plan.refs, 0
     out = _Outcome()
     bar = None
     k = 0
@@ -301,12 +332,17 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 raise _Interrupted  # at a cycle boundary: no frame is half-handled
             if pacer is not None:
                 pacer.wait(k)
+            j = k - base
+            if j == REF_CHUNK:  # the next chunk of references (bounded memory for any run length)
+                plan.load(k)
+                refs, base, j = plan.refs, k, 0
             for i, ch in enumerate(channels):
                 fb = sample_axis(ch, k)
                 pr, vr, ar, jr = refs[i]
-                u = control(ch, Reference(pr[k], vr[k], ar[k], jr[k]), fb)
-                rec.record(i, k, fb, u)
-                check_and_write(ch, k, dt, fb.position, pr[k], u)
+                r = pr[j]
+                u = control(ch, Reference(r, vr[j], ar[j], jr[j]), fb)
+                rec.record(i, k, fb, u, r)
+                check_and_write(ch, k, dt, fb.position, r, u)
             out.cycles = k + 1
             if k == 0 and on_start is not None:
                 on_start(n)
@@ -391,9 +427,12 @@ class Recording:
 
     def __init__(self, plan: RunPlan, stream: str | Path | None = None, paced: bool = False):
         self.plan = plan
-        n = plan.cycles
-        self._cols = [{k: np.zeros(n) for k in ("pos_m", "effort", "vel_m_s")} for _ in plan.channels]
-        self._rows = [(c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols]
+        self.dt = plan.dt
+        if not plan.keep and stream is None:
+            raise ValueError("run: a plan made with keep=False records only by streaming: give stream=")
+        n = plan.cycles if plan.keep else 0
+        self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
+        self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
         self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
         self._head = [self._head_meta(ch, paced) for ch in plan.channels]
         self.writers: list = []
@@ -419,13 +458,15 @@ class Recording:
             "clock": "wall clock, paced" if paced else "lockstep",
         }
 
-    def record(self, i: int, k: int, fb: Feedback, u: float) -> None:
-        pos, vel, eff = self._rows[i]
-        pos[k] = fb.position
-        vel[k] = fb.velocity
-        eff[k] = u
+    def record(self, i: int, k: int, fb: Feedback, u: float, ref: float) -> None:
+        if self._rows is not None:
+            r, pos, vel, eff = self._rows[i]
+            r[k] = ref
+            pos[k] = fb.position
+            vel[k] = fb.velocity
+            eff[k] = u
         if self._append is not None:
-            self._append[i](k * self.plan.dt, self.plan.refs[i][0][k], fb.position, u, fb.velocity)
+            self._append[i](k * self.dt, ref, fb.position, u, fb.velocity)
 
     def abandon(self) -> None:
         for w in self.writers:
@@ -445,10 +486,8 @@ class Recording:
         traces = {}
         paths: dict[str, Path] = {}
         errors: dict[str, str] = {}
+        t = plan.t[:n] if plan.keep else None
         for i, ch in enumerate(plan.channels):
-            cols = {"time_s": plan.t[:n], "ref_m": np.asarray(plan.refs[i][0][:n]),
-                    **{k: v[:n] for k, v in self._cols[i].items()}}
-            cols = {k: cols[k] for k in self.COLUMNS}
             head = self._head[i]
             meta = {
                 **head,
@@ -468,12 +507,22 @@ class Recording:
                 meta["safe_state"] = out.fault.safe_state.get(name, "unknown")
                 after = out.fault.safe_after.get(name)
                 meta["safe_after_cycles"] = "unknown" if after is None else str(after)
-            traces[ch.axis.name] = Trace(cols, meta)
+            if plan.keep:
+                cols = {"time_s": t, **{k: v[:n] for k, v in self._cols[i].items()}}
+                traces[ch.axis.name] = Trace({k: cols[k] for k in self.COLUMNS}, meta)
             if self.writers:
+                w = self.writers[i]
                 try:
-                    paths[ch.axis.name] = self.writers[i].close({k: v for k, v in meta.items() if k not in head})
+                    paths[ch.axis.name] = w.close({k: v for k, v in meta.items() if k not in head})
                 except Exception as exc:  # noqa: BLE001 - a write error must not lose the run's result
                     errors[ch.axis.name] = str(exc)
+                if not plan.keep:  # the record is the file: read back (the rows it has, if it failed)
+                    try:
+                        tr = traces[ch.axis.name] = Trace.read(paths.get(ch.axis.name) or w.partial)
+                        if ch.axis.name in errors:  # cut short by the disk, not by the run: say how the run ended
+                            tr.meta.update({k: v for k, v in meta.items() if k != "cycles"})
+                    except Exception as exc:  # noqa: BLE001
+                        errors.setdefault(ch.axis.name, str(exc))
         return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
                          out.fault, out.started, paths, errors)
 
@@ -525,12 +574,40 @@ def _check_profile(ch: Channel, until: float) -> None:
     lim = ch.limits
     if lim.position is not None:
         try:
-            check_limits(ch.profile, position=lim.position, until=until)
+            t0 = 0.0
+            while True:  # a window at a time: the check's memory does not grow with the run's length
+                span = min(until - t0, CHECK_WINDOW_S)
+                profile = ch.profile if t0 == 0.0 else _Shifted(ch.profile, t0)
+                try:
+                    check_limits(profile, position=lim.position, until=span)
+                except ProfileError as exc:
+                    raise ProfileError(re.sub(r"at t=([0-9.]+) s", lambda m, t0=t0: f"at t={float(m[1]) + t0:.3f} s",
+                                              str(exc), count=1)) from None
+                t0 += span
+                if t0 >= until:
+                    break
         except ProfileError as exc:
             origin = f" ({lim.position_source})" if lim.position_source else ""
             raise LimitError(f"axis {ch.axis.name}: {exc}{origin}; nothing moved") from None
     ch.following_since = None
     ch.last_position = None
+
+
+#: the soft-limit check of a run samples this much of the profile at a time (s)
+CHECK_WINDOW_S = 600.0
+
+
+class _Shifted:
+    """``profile`` seen from ``t0`` on (its name and file kept for the messages)."""
+
+    def __init__(self, profile: Profile, t0: float):
+        self._p, self._t0 = profile, t0
+        self.name = getattr(profile, "name", None) or profile_name(profile)
+        self.source = getattr(profile, "source", None)
+        self.duration = max(profile.duration - t0, 0.0)
+
+    def sample(self, t: np.ndarray):
+        return self._p.sample(np.asarray(t) + self._t0)
 
 
 def _left_operation(ch: Channel, k: int) -> Fault:
@@ -559,6 +636,14 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
+    if last is None or "_jump" not in ch.__dict__:
+        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if jump is not None:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
+            "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
             f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
@@ -607,38 +692,19 @@ def _bring_up(channels: Sequence[Channel]) -> None:
 
 
 def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
-    """Quick stop now (the command goes out in this very cycle), then disable; cycle until every
-    drive reports a safe state, counting the cycles (into ``fault``), and go on when an axis fails:
-    the others must still be stopped. Where the TPDOs no longer bring the statusword, it is read by
-    SDO; where nothing answers, the state stays unknown (the drive's own watchdogs take over)."""
-    for ch in channels:
-        _quietly(ch.axis.quick_stop)
-        _quietly(ch.axis.write, 0.0)
-    safe_after: dict[str, int | None] = {}
-    for ch in channels:
-        if ch.axis.power in SAFE_STATES:
-            safe_after[ch.axis.name] = 0
-    for j in range(1, STATE_CHANGE_CYCLES + 1):
-        if len(safe_after) == len(channels):
-            break
-        if not _stop_cycle(channels):
-            break  # nothing answers: the drives' own watchdogs must stop them
-        for ch in channels:
-            if ch.axis.name not in safe_after and ch.axis.power in SAFE_STATES:
-                safe_after[ch.axis.name] = j
-    for ch in channels:
-        if ch.axis.power is not PowerState.FAULT:
-            _quietly(ch.axis.disable)
-    for _ in range(STATE_CHANGE_CYCLES):
-        if all(ch.axis.power not in _STILL_CHANGING for ch in channels):
-            break
-        if not _stop_cycle(channels):
-            break
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (controllers/safe_stop.py); the cycles to a
+    confirmed safe state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    from drivectl.controllers.safe_stop import stop_axes
+
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
     if fault is not None:
-        for ch in channels:
-            fault.safe_after[ch.axis.name] = safe_after.get(ch.axis.name)
-            fault.safe_state[ch.axis.name] = ch.axis.power.value if ch.axis.name in safe_after else "unknown"
-        faulted = next((ch.axis for ch in channels if ch.axis.name == fault.axis), None)
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
         if faulted is not None:
             fault.statusword = getattr(faulted, "statusword", None)
             code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None

@@ -22,6 +22,12 @@ class Feedback:
     velocity: float  # m/s, as the drive reports it (0x606C on a CiA 402 drive)
 
 
+#: what an axis may do last when neither the quick stop (RPDO, SDO) nor NMT Stop is confirmed (the
+#: configuration's ``last_resort``): "nmt-reset" (NMT Reset Node: the drive restarts with its power
+#: stage off) or "none"
+LAST_RESORTS = ("nmt-reset", "none")
+
+
 class FaultKind(Enum):
     """What the master detected; the value is what traces and messages say."""
 
@@ -34,6 +40,9 @@ class FaultKind(Enum):
     IMPLAUSIBLE_POSITION = "implausible position"
     FOLLOWING_ERROR = "following error"
     SOFT_LIMIT = "soft position limit"
+    ROGUE_RPDO = "rogue rpdo"
+    ROGUE_SYNC = "rogue sync"
+    FOREIGN_NMT = "foreign nmt"
     LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
 
 

@@ -14,8 +14,18 @@ Faults it detects (each raised once as :class:`AxisError` with its :class:`Fault
 ``max_lost_cycles`` cycles in a row without the TPDOs (one lost or late cycle is bridged by
 extrapolating the last sample, and counted); the drive's heartbeat silent for three periods; a
 boot-up message from the drive while connected (it reset by itself); python-can raising on send or
-receive (bus error, bus-off). A drive fault arrives as the statusword (and EMCY, kept in
+receive (bus error, bus-off); frames it did not send on its own COB-IDs: an RPDO on this drive's
+RPDO COB-ID (a second producer overrides the master's commands), a SYNC (the master is the bus's only
+SYNC producer: another one changes the drive's rate), an NMT command, or a heartbeat saying the drive
+left Operational (a second NMT master). A drive fault arrives as the statusword (and EMCY, kept in
 ``last_emcy``); the servo loop reacts to the power state.
+
+Every received frame is checked before use (driver/frame_guard.py): a TPDO whose length is not the
+mapping's is counted (``malformed_frames``) and its cycle bridged as a lost one.
+
+When a stop is not confirmed by the drive (driver/safe_stop.py), the axis escalates through
+:meth:`sdo_quick_stop`, :meth:`nmt_stop` and :meth:`last_resort`; :attr:`state_fresh` says whether
+:attr:`power` is what the drive reported in this cycle (TPDO) or since (SDO), not a stale belief.
 """
 
 from __future__ import annotations
@@ -29,7 +39,7 @@ import can
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     MASTER_NODE_ID,
@@ -41,9 +51,13 @@ from drivectl.driver.cia301 import (
     NmtState,
 )
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.units import EffortScale, Encoder
+
+#: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
+_HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
 
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
@@ -106,6 +120,7 @@ class CanopenAxis:
         max_lost_cycles: int = 3,
         rpdo_timeout_ms: int | None = None,
         max_effort: float = math.inf,
+        last_resort: str = "nmt-reset",
     ):
         self.name = name
         self.dt = dt
@@ -121,6 +136,10 @@ class CanopenAxis:
         if max_lost_cycles < 0:
             raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
         self.max_lost_cycles = max_lost_cycles
+        if last_resort not in LAST_RESORTS:
+            raise ValueError(f"axis {name}: last_resort: expected one of {', '.join(LAST_RESORTS)}, "
+                             f"got {last_resort!r}")
+        self.last_resort_action = last_resort
         if not max_effort > 0:
             raise ValueError(f"axis {name}: max_effort: must be > 0, got {max_effort}")
         # the drive clips the torque to 0x6072 on its own: the configured limit holds even if a
@@ -171,6 +190,19 @@ class CanopenAxis:
         self.heartbeat_state: int | None = None
         self._booted = threading.Event()
         self._connected = False
+        # frames checked before use (the network's guard when it has one: it also counts what it dropped)
+        guard = getattr(network, "frame_guard", None)
+        if guard is None:
+            guard = network.frame_guard = FrameGuard()
+        self.frame_guard: FrameGuard = guard
+        #: frames nobody but the master may send, seen from someone else: (kind, what) of the first
+        self._foreign: tuple[FaultKind, str] | None = None
+        self._foreign_seen = False  # raised once per connection
+        self._nmt_own = False  # the master itself took the drive out of Operational (a stop escalation)
+        self._seen_operational = False  # the drive's heartbeat has said Operational since connect()
+        #: :attr:`power` is the drive's own report of this cycle (TPDO) or of an SDO read since
+        self.state_fresh = False
+        self.state_source = ""  # "TPDO" or "SDO": where the last confirmed statusword came from
 
     # -- boot and configuration (before the cycle runs) ------------------------------------------
     def connect(self) -> None:
@@ -183,9 +215,17 @@ class CanopenAxis:
         # heartbeat consumer on the master's side: the drive's heartbeat counts in bus cycles
         self._last_heartbeat = self.clock.cycle
         self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
+        # frames only the master sends: seen from someone else they are a fault of their own
+        for cob in self._watched_cobs:
+            self.network.subscribe(cob, self._on_foreign)
+        # in lockstep the START below is taken at once; across processes a heartbeat already under way may
+        # still say Pre-operational, so a change counts only after the drive has said Operational
+        self._foreign, self._foreign_seen, self._nmt_own = None, False, False
+        self._seen_operational = self.lockstep
         # the state before the first SYNC, so that the first cycle already sends the right command
         self.statusword = self._sdo(cia402.STATUSWORD)
         self.power = cia402.decode_statusword(self.statusword)
+        self.state_fresh, self.state_source = True, "SDO"
         self._controlword = self.master.controlword(self.power)
         self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(
             self._sdo(cia402.POSITION_ACTUAL)), 0.0)
@@ -305,10 +345,14 @@ class CanopenAxis:
     # -- the cycle ---------------------------------------------------------------------------------
     def _tpdo_callback(self, i: int):
         codec = self._tpdo[i].codec
+        size = codec.size
         fresh = self._fresh
         raw = self._raw
 
         def on_tpdo(can_id: int, data: bytes, timestamp: float) -> None:
+            if len(data) != size:  # not the mapping's length: unusable, the cycle is bridged as lost
+                self.frame_guard.reject(can_id, f"{len(data)} data bytes, the mapping has {size}", "tpdo-length")
+                return
             if self._consumed == self.clock.cycle:
                 self.late_total += 1  # for a cycle already used: too late, dropped
                 return
@@ -320,10 +364,51 @@ class CanopenAxis:
         return on_tpdo
 
     def _on_heartbeat(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if len(data) != 1:  # the guard drops these on our networks; a bare canopen Network may not
+            self.frame_guard.reject(can_id, f"{len(data)} data bytes, CiA 301 says 1")
+            return
+        state = data[0]
+        if state not in _HEARTBEAT_STATES:  # not a state CiA 301 knows: a garbled frame, not a report
+            self.frame_guard.reject(can_id, f"heartbeat state 0x{state:02X} is no NMT state", "heartbeat-state")
+            return
         self._last_heartbeat = self.clock.cycle
-        self.heartbeat_state = data[0] if data else None
-        if data[:1] == b"\x00" and self._connected:
+        self.heartbeat_state = state
+        if not self._connected:
+            return
+        if state == 0:
             self._rebooted = True  # a boot-up while we run the drive: it reset by itself
+        elif state == NmtState.OPERATIONAL:
+            self._seen_operational = True
+        elif self._seen_operational and not self._nmt_own and self._foreign is None:
+            # the drive left Operational and the master did not ask it to: another NMT master did
+            # (its command may not have reached us; the heartbeat always does)
+            names = {int(s): s.name.replace("_", "-").lower() for s in NmtState}
+            self._foreign = (FaultKind.FOREIGN_NMT, f"the drive's heartbeat says {names.get(state, hex(state))} "
+                             "(the master did not command it: a second NMT master?)")
+
+    @property
+    def foreign_kind(self) -> FaultKind | None:
+        """The rogue producer or foreign NMT seen since connect() (None: none)."""
+        return self._foreign[0] if self._foreign is not None else None
+
+    @property
+    def _watched_cobs(self) -> tuple[int, ...]:
+        return (self._rpdo_cob, SYNC_COB_ID, NMT_COB_ID)
+
+    def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """A frame on a COB-ID only the master sends (it never receives its own): someone else sent it."""
+        if not self._connected or self._foreign is not None:
+            return
+        if can_id == self._rpdo_cob:
+            self._foreign = (FaultKind.ROGUE_RPDO, f"an RPDO on 0x{can_id:03X} that the master did not send "
+                             "(a second producer: the drive takes whichever came last)")
+        elif can_id == SYNC_COB_ID:
+            self._foreign = (FaultKind.ROGUE_SYNC, "a SYNC that the master did not send (a second SYNC producer: "
+                             "the drive steps at the wrong rate)")
+        elif len(data) == 2 and data[1] in (0, self.node_id):
+            names = {int(c): c.name.replace("_", " ").lower() for c in NmtCommand}
+            self._foreign = (FaultKind.FOREIGN_NMT, f"NMT {names.get(data[0], f'0x{data[0]:02X}')} to "
+                             f"{'all nodes' if data[1] == 0 else f'node {data[1]}'} from another master")
 
     def _on_emcy(self, entry: canopen.emcy.EmcyError) -> None:
         self.last_emcy = (entry.code, self.clock.cycle)
@@ -346,9 +431,14 @@ class CanopenAxis:
             except can.CanError as exc:
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
         self._cycle = cycle = self.clock.cycle
+        self.state_fresh = False
         if not all(self._fresh) and not self.lockstep:
             self._arrived.wait(self.tpdo_timeout)
         self._consumed = cycle
+        if self._foreign is not None and not self._foreign_seen:
+            self._foreign_seen = True  # raised once; the stop that follows must still cycle
+            kind, what = self._foreign
+            raise AxisError(f"axis {self.name}: node {self.node_id}: {what}", kind)
         if self._rebooted:
             self._rebooted = False
             raise AxisError(f"axis {self.name}: node {self.node_id}: unexpected boot-up (the drive reset by itself; "
@@ -366,6 +456,7 @@ class CanopenAxis:
             (sw, counts), (vel_counts, _torque) = self._raw
             self.statusword = sw
             self.power = cia402.decode_statusword(sw)
+            self.state_fresh, self.state_source = True, "TPDO"
             self._controlword = self.master.controlword(self.power)
             enc = self.encoder
             fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
@@ -394,13 +485,71 @@ class CanopenAxis:
         """The power state by SDO (0x6041), when the TPDOs do not bring it."""
         self.statusword = self._sdo(cia402.STATUSWORD)
         self.power = cia402.decode_statusword(self.statusword)
+        self.state_fresh, self.state_source = True, "SDO"
         self._controlword = self.master.controlword(self.power)
         return self.power
 
+    # -- stop escalation (driver/safe_stop.py decides when) ----------------------------------------
+    def sdo_quick_stop(self) -> None:
+        """Quick stop by SDO (0x6040 = Quick Stop), for a drive that does not take it by RPDO (outside
+        Operational, or a second RPDO producer overriding the master's). The RPDO says the same from now on."""
+        self._target(PowerState.QUICK_STOP_ACTIVE)
+        self._sdo(cia402.CONTROLWORD, value=int(cia402.Command.QUICK_STOP))
+
+    def abort_connection_option(self) -> int | None:
+        """0x6007 by SDO (None: not readable): 1 fault, 2 disable voltage, 3 quick stop on a lost connection."""
+        try:
+            return self._sdo(cia402.ABORT_CONNECTION_OPTION)
+        except AxisError:
+            return None
+
+    def nmt_stop(self) -> None:
+        """NMT Stop to this drive: it no longer takes any PDO (a rogue producer's neither) and, per its
+        0x6007, stops its power stage. The drive's reply comes by SDO after NMT Pre-operational
+        (:meth:`refresh_state_outside_operational`); a Stopped node need not answer SDO."""
+        self._nmt_own = True
+        self.network.send_message(NMT_COB_ID, bytes([NmtCommand.STOP, self.node_id]))
+
+    def refresh_state_outside_operational(self) -> PowerState:
+        """The statusword by SDO; if the drive is NMT Stopped and does not answer, NMT Pre-operational
+        first (SDO works there, PDOs still do not)."""
+        try:
+            return self.refresh_state()
+        except AxisError:
+            self._nmt_own = True
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+            return self.refresh_state()
+
+    def last_resort(self) -> str | None:
+        """The configured last resort (``last_resort``); returns what was done, None for "none"."""
+        if self.last_resort_action == "none":
+            return None
+        # NMT Reset Node: the drive restarts with its power stage off (and its configuration lost: connect()
+        # again before the next run); wait for its boot-up, then read the state it came back in
+        self._nmt_own = True
+        self._connected = False  # the boot-up that follows is ours, not a spontaneous reset
+        self._booted.clear()
+
+        def on_boot(can_id: int, data: bytes, timestamp: float) -> None:
+            if data[:1] == b"\x00":
+                self._booted.set()
+
+        cob = HEARTBEAT_BASE + self.node_id
+        self.network.subscribe(cob, on_boot)
+        try:
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, self.node_id]))
+            self._wait(self._booted, "boot-up message after NMT reset")
+        finally:
+            self.network.unsubscribe(cob, on_boot)
+        self.refresh_state()
+        return "NMT Reset Node"
+
     @property
     def counters(self) -> dict[str, int]:
-        """Cycles bridged for lack of TPDOs and TPDO frames that came too late (cumulative)."""
-        return {"tpdo_lost_cycles": self.lost_total, "tpdo_late_frames": self.late_total}
+        """Cycles bridged for lack of TPDOs, TPDO frames that came too late, and the frames the master
+        dropped as malformed (wrong length, remote; this drive's and the broadcast NMT/SYNC; cumulative)."""
+        return {"tpdo_lost_cycles": self.lost_total, "tpdo_late_frames": self.late_total,
+                "malformed_frames": self.frame_guard.count(self.node_id) + self.frame_guard.count(0)}
 
     def drive_limits(self) -> dict[str, object]:
         """The limits the drive holds (0x6065/0x6066 following error, 0x607D software position limits),
@@ -453,7 +602,8 @@ class CanopenAxis:
     def close(self) -> None:
         subs = self.network.subscribers
         for cob, handler in [*zip(self._tpdo_cob, self._tpdo_handlers, strict=True),
-                             (HEARTBEAT_BASE + self.node_id, self._on_heartbeat)]:
+                             (HEARTBEAT_BASE + self.node_id, self._on_heartbeat),
+                             *((c, self._on_foreign) for c in self._watched_cobs)]:
             if handler in subs.get(cob, ()):  # only ours: another listener on the COB-ID stays
                 self.network.unsubscribe(cob, handler)
         if self._connected:

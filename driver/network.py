@@ -20,7 +20,10 @@ import can
 import canopen
 
 from drivectl.driver.axis import AxisConfigError
+from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
+
+log = logging.getLogger("drivectl.frames")
 
 #: the interfaces opened with settings of their own here (the rest: python-can's defaults and [bus.options])
 SPECIAL_INTERFACES = ("virtual", "slcan", "socketcand", "socketcan")
@@ -166,6 +169,9 @@ class LockstepNetwork(canopen.Network):
         self._recv = bus.recv
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
+        #: every received frame is checked before canopen's dispatch (driver/frame_guard.py)
+        self.frame_guard = FrameGuard()
+        self.handler_errors = 0
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
@@ -194,8 +200,13 @@ class LockstepNetwork(canopen.Network):
             got = True
             if log is not None:
                 log.on_message_received(msg)
-            if not msg.is_error_frame:
-                notify(msg.arbitration_id, msg.data, msg.timestamp)
+            if not msg.is_error_frame and self.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+                try:
+                    notify(msg.arbitration_id, msg.data, msg.timestamp)
+                except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
+                    # must not end the pump (in lockstep that would be the sender's cycle); counted, logged
+                    self.handler_errors += 1
+                    _log_handler_error(msg.arbitration_id, exc, self.handler_errors)
         return got
 
     def disconnect(self) -> None:
@@ -209,9 +220,34 @@ class LockstepNetwork(canopen.Network):
         self.bus = None
 
 
+class GuardedListener(canopen.network.MessageListener):
+    """canopen's MessageListener with the frame checks of driver/frame_guard.py before its dispatch."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            return
+        net = self.network
+        if net.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+            try:
+                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
+            except Exception as exc:  # noqa: BLE001 - the notifier thread must go on
+                net.handler_errors = getattr(net, "handler_errors", 0) + 1
+                _log_handler_error(msg.arbitration_id, exc, net.handler_errors)
+
+
+def _log_handler_error(can_id: int, exc: Exception, count: int) -> None:
+    if count == 1 or count % 1000 == 0:  # rate-limited: a flood of one bad frame is one line per 1000
+        log.warning("frame 0x%03X: its handler raised %s: %s (%d so far; frame dropped)", can_id,
+                    type(exc).__name__, exc, count)
+
+
 def threaded_network(bus: can.BusABC) -> canopen.Network:
-    """A canopen Network driven by a python-can Notifier (for buses that cross processes)."""
+    """A canopen Network driven by a python-can Notifier (for buses that cross processes); every frame
+    checked by a :class:`FrameGuard` before canopen's dispatch."""
     net = canopen.Network(bus)
+    net.frame_guard = FrameGuard()
+    net.handler_errors = 0
+    net.listeners = [GuardedListener(net)]
     net.NOTIFIER_CYCLE = 0.05  # teardown waits up to one cycle; canopen's default is 1 s
     net.notifier = can.Notifier(bus, net.listeners, net.NOTIFIER_CYCLE)
     return net

@@ -14,6 +14,7 @@ process: the lockstep virtual bus). The master is never told what was injected: 
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ from typing import Any
 import can
 
 from drivectl.driver import cia402
+from drivectl.driver.cia301 import NMT_COB_ID, RPDO_BASE, SYNC_COB_ID
 
 
 @dataclass(frozen=True)
@@ -54,6 +56,20 @@ KINDS: dict[str, Kind] = {
     "bus-off": Kind({}, "bus", "the master's bus goes bus-off: every send and receive raises from then on"),
     "master-dead": Kind({}, "bus", "the master falls silent (its process died): nothing it sends reaches "
                         "the drives any more"),
+    "rogue-rpdo": Kind({"effort": 30.0}, "drive",
+                       "a second node sends this drive's RPDO1 (Enable Operation, `effort` in the effort unit) "
+                       "after each of the master's, and every cycle the master sends none: it overrides the master"),
+    "rogue-sync": Kind({}, "drive", "a second node sends a SYNC after each of the master's (the drive steps twice a "
+                       "cycle)"),
+    "foreign-nmt": Kind({"command": 0x02, "hidden": 0}, "drive",
+                        "a second NMT master sends `command` (0x02 Stop, 0x80 Pre-operational, 0x82 Reset "
+                        "Communication) to this drive; hidden=1: the master's bus does not see the command (only "
+                        "the drive's heartbeat tells)"),
+    "malformed-frame": Kind({"function": 0x180, "length": 2, "rtr": 0, "cycles": 1, "broadcast": 0}, "drive",
+                            "for `cycles` SYNCs a frame of `length` data bytes (rtr=1: a remote frame) on function "
+                            "code `function` + node id (0x180 TPDO1, 0x280 TPDO2: in place of the real one; 0x080 "
+                            "EMCY, 0x580 SDO response, 0x700 heartbeat); broadcast=1: the function code alone "
+                            "(0x080 SYNC, 0x000 NMT)"),
 }
 
 #: SDO abort code the drive answers an injected sdo-abort with (CiA 301: general error)
@@ -93,6 +109,7 @@ class FaultSpec:
                 raise FaultSpecError(f"fault {self.kind}: {key}: expected an integer 0..0xFFFF, got {value:g}")
         if "cycles" in self.params and not self.params["cycles"] >= 1:
             raise FaultSpecError(f"fault {self.kind}: cycles: must be >= 1, got {self.params['cycles']}")
+        _check_frame_params(self)
         if not (math.isfinite(self.at) and self.at >= 0):
             raise FaultSpecError(f"fault {self.kind}: time: must be >= 0 s, got {self.at}")
 
@@ -106,6 +123,23 @@ class FaultSpec:
     def __str__(self) -> str:
         args = ",".join(f"{k}={v:g}" for k, v in self.params.items())
         return f"{self.axis + '/' if self.axis else ''}{self.kind}{':' + args if args else ''}@{self.at:g}"
+
+
+def _check_frame_params(spec: FaultSpec) -> None:
+    """The frame-level kinds' parameters must describe a frame that can be sent."""
+    p = spec.params
+    if spec.kind == "foreign-nmt" and "command" in p and p["command"] not in (0x01, 0x02, 0x80, 0x81, 0x82):
+        raise FaultSpecError(f"fault foreign-nmt: command: expected an NMT command (0x01, 0x02, 0x80, 0x81, 0x82), "
+                             f"got {p['command']:g}")
+    if spec.kind == "malformed-frame":
+        if "length" in p and not (p["length"] == int(p["length"]) and 0 <= p["length"] <= 8):
+            raise FaultSpecError(f"fault malformed-frame: length: must be 0..8 data bytes, got {p['length']:g}")
+        if "function" in p and not (p["function"] == int(p["function"]) and 0 <= p["function"] <= 0x780
+                                    and not int(p["function"]) & 0x7F):
+            raise FaultSpecError("fault malformed-frame: function: expected a CANopen function code (a multiple of "
+                                 f"0x80 up to 0x780), got {p['function']:g}")
+    if spec.kind == "rogue-rpdo" and "effort" in p and not math.isfinite(p["effort"]):
+        raise FaultSpecError(f"fault rogue-rpdo: effort: must be finite, got {p['effort']:g}")
 
 
 def parse_fault(text: str, source: str = "--fault") -> FaultSpec:
@@ -208,6 +242,7 @@ class FaultInjector:
         self._late = 0.0
         self._silent = 0.0
         self.held: list[tuple[int, bytes]] = []  # late TPDO frames waiting to go out
+        self._frames: _FrameFaults | None = None  # rogue producers, foreign NMT, malformed frames
         for spec in specs:
             self.arm(spec)
 
@@ -276,6 +311,10 @@ class FaultInjector:
                 self.bus.fail("dead")
             else:
                 self.deaf = True
+        elif kind in ("rogue-rpdo", "rogue-sync", "foreign-nmt", "malformed-frame"):
+            if self._frames is None:
+                self._frames = _FrameFaults(drive)
+            self._frames.fire(spec)
 
     def tpdo_action(self, n: int) -> str:
         """What to do with TPDO ``n`` (0-based) this cycle: "send", "drop" or "hold" (send late)."""
@@ -285,6 +324,8 @@ class FaultInjector:
             return "hold"
         if n == 0 and self._lost >= 1:
             return "drop"
+        if self._frames is not None and self._frames.replaces_tpdo(n):
+            return "drop"  # a malformed frame goes out in its place
         return "send"
 
     def end_cycle(self) -> None:
@@ -302,7 +343,93 @@ class FaultInjector:
         self.position_offset = 0.0
         self.held.clear()
         self.deaf = False
+        if self._frames is not None:
+            self._frames.stop()
+            self._frames = None
 
     def release(self) -> list[tuple[int, bytes]]:
         frames, self.held = self.held, []
         return frames
+
+
+class _FrameFaults:
+    """Frames another node (or a broken one) puts on the drive's bus: a rogue RPDO or SYNC producer, a
+    foreign NMT master, malformed frames. Each is sent on the bus (the master sees what any node would)
+    and dispatched to the drive's own network too (a node on a real bus receives every other node's
+    frames; a python-can bus does not receive its own). Hooks on the drive's network run after the
+    drive's handlers, so a rogue RPDO lands after the master's and overrides it."""
+
+    def __init__(self, drive: Any):
+        self.drive = drive
+        self.net = drive.network
+        self.node_id = drive.node_id
+        self.rogue_rpdo: bytes | None = None
+        self.rogue_sync = False
+        self.malformed: tuple[int, bytes, bool] | None = None  # (COB-ID, data, remote)
+        self.malformed_cycles = 0.0
+        self._master_rpdo = False  # the master's RPDO came since the last SYNC
+        self._inside = False  # our own dispatch is under way: the hooks do not fire on it
+        self.rpdo_cob = RPDO_BASE[0] + self.node_id
+        self.net.subscribe(SYNC_COB_ID, self._on_sync)
+        self.net.subscribe(self.rpdo_cob, self._on_rpdo)
+
+    def fire(self, spec: FaultSpec) -> None:
+        kind = spec.kind
+        if kind == "rogue-rpdo":
+            permille = self.drive.scale.to_permille(spec.param("effort"))
+            self.rogue_rpdo = struct.pack("<Hh", int(cia402.Command.ENABLE_OPERATION), max(-32768, min(32767,
+                                                                                                      permille)))
+        elif kind == "rogue-sync":
+            self.rogue_sync = True
+        elif kind == "foreign-nmt":
+            frame = bytes([int(spec.param("command")), self.node_id])
+            if spec.param("hidden"):
+                self._dispatch(NMT_COB_ID, frame)  # only the drive gets it
+            else:
+                self._emit(NMT_COB_ID, frame)
+        elif kind == "malformed-frame":
+            function, length = int(spec.param("function")), int(spec.param("length"))
+            cob = function if function == 0 or spec.param("broadcast") else function + self.node_id
+            self.malformed = (cob, bytes(length) if not spec.param("rtr") else b"", bool(spec.param("rtr")))
+            self.malformed_cycles = spec.param("cycles")
+
+    def replaces_tpdo(self, n: int) -> bool:
+        if self.malformed is None or self.malformed_cycles < 1:
+            return False
+        return self.malformed[0] - self.node_id == (0x180, 0x280, 0x380, 0x480)[n]
+
+    def _emit(self, cob: int, data: bytes, remote: bool = False) -> None:
+        self.net.send_message(cob, data, remote)
+        if not remote:
+            self._dispatch(cob, data)
+
+    def _dispatch(self, cob: int, data: bytes) -> None:
+        self._inside = True
+        try:
+            self.net.notify(cob, data, 0.0)
+        finally:
+            self._inside = False
+
+    def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self._inside:
+            return
+        self._master_rpdo = True
+        if self.rogue_rpdo is not None:
+            self._emit(self.rpdo_cob, self.rogue_rpdo)  # right after the master's: the drive takes this one
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        if self._inside:
+            return
+        if self.rogue_rpdo is not None and not self._master_rpdo:
+            self._emit(self.rpdo_cob, self.rogue_rpdo)  # every cycle, whether the master sends or not
+        self._master_rpdo = False
+        if self.malformed is not None and self.malformed_cycles >= 1:
+            cob, frame, remote = self.malformed
+            self.net.send_message(cob, frame, remote)  # the master's to cope with (the drive ignores it)
+            self.malformed_cycles -= 1
+        if self.rogue_sync:
+            self._emit(SYNC_COB_ID, b"")
+
+    def stop(self) -> None:
+        self.net.unsubscribe(SYNC_COB_ID, self._on_sync)
+        self.net.unsubscribe(self.rpdo_cob, self._on_rpdo)

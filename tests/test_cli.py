@@ -106,7 +106,8 @@ def test_signal_stops_the_axis_and_keeps_the_trace(tmp_path, sig, code):
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == code, err
-    assert "quick-stopped and disabled, trace kept" in err
+    # the end state as the drive reported it, not a fixed sentence
+    assert "quick stop (x Switch On Disabled after" in err and "trace kept" in err, err
     tr = Trace.read(tmp_path / "x.csv")
     assert tr.meta["stop"] == "interrupted"
     assert 0 < len(tr) < 600_001

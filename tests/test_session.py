@@ -101,6 +101,22 @@ def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
         lo, hi = x.limits.position
         assert j.done and x.state == "servo"  # stopped at the limit, no fault
         assert hi - 0.0011 < x.position < hi
+        held = x.jog(0.01)  # the button still held at the limit: nothing moves, nothing raises
+        assert held.done and "at the soft limit already" in held.detail
+        x.jog(-0.01)  # away from it is fine
+        m.advance(0.1)
+        assert x.velocity < 0
+
+
+def test_a_jog_renewed_while_its_dead_man_stop_is_under_way_moves_on(machine):
+    x = machine.axes["x"]
+    x.enable()
+    j = x.jog(0.02)
+    machine.advance(0.215)  # 0.2 s: the dead man began the stop (about 40 ms long); the axis decelerates
+    assert 0 < x.velocity < 0.02 and not j.done
+    assert x.jog(0.02) is j
+    machine.advance(0.15)
+    assert x.velocity == pytest.approx(0.02, rel=0.05)
 
 
 def test_moves_outside_the_limits_are_refused_before_anything_moves(machine):
@@ -136,6 +152,8 @@ def test_relative_run_of_a_profile(machine):
     prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.4)
     with pytest.raises(LimitError, match="starts at"):
         x.run(prof)  # absolute: the axis is not at the start
+    with pytest.raises(LimitError, match=r"velocity 0.44\d+ exceeds the axis's max_velocity_m_s 0.1"):
+        x.run(PointToPoint(0.0, 0.05, 0.5, 5.0, 200.0), relative=True)
     h = x.run(prof, relative=True, record=machine.loop.fault_dir).wait(5)
     assert h.status == "done"
     tr = h.trace
@@ -201,7 +219,7 @@ def test_capture_around_an_injected_fault_and_the_fault_ring_on_disk(tmp_path):
         assert len(tr) == 201 and tr.time[-1] == 0.0
         assert tr.ref[-1] > 0 and "drive fault" in tr.meta["capture_detail"]
         files = m.loop.flush()
-        assert len(files) == 1 and files[0].name.startswith("x-fault-")
+        assert len(files) == 1 and files[0].name.startswith("x-fault-")  # the armed capture, on disk
         assert len(Trace.read(files[0])) == 201
         with pytest.raises(AxisError, match="fault_reset first"):
             x.enable()
@@ -408,3 +426,29 @@ def test_a_controller_that_raises_stops_every_axis_instead_of_killing_the_loop(m
     assert x.state == "off" and x.power in (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE)
     machine.advance(0.05)  # the loop goes on cycling the (disabled) axis
     assert machine.status()["faults"] == 1
+
+
+def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
+    with drivectl.connect(config(), axes=["x", "y"], fault_dir=tmp_path, faults=["y/emcy-fault@0.4"],
+                          ring_s=0.25) as m:
+        for ax in m.axes.values():
+            ax.enable()
+        h = m.axes["x"].move_to(0.02)
+        with pytest.raises(MotionFault):
+            h.wait(2)
+        files = sorted(m.loop.flush())
+    assert [f.name.split("-fault-")[0] for f in files] == ["x", "y"]  # every axis, the ring's last 0.25 s
+    tr = Trace.read(files[0])
+    assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
+    assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
+    assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)
+
+
+def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, capsys):
+    m = drivectl.connect(config(), axes=["x"], fault_dir=tmp_path)
+    with m:
+        m.axes["x"].enable()
+        m.loop.axes["x"].ch.axis.disable = lambda: None  # the command never reaches the drive
+    assert m.unconfirmed == ["x"]
+    err = capsys.readouterr().err
+    assert "axis x: the drive last reported Operation Enabled after the disable: it may still be powered" in err

@@ -593,7 +593,13 @@ def cmd_bode(args: argparse.Namespace) -> int:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 1
     if not res.ok:
-        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; axis quick-stopped and disabled, "
+        from drivectl.controllers.safe_stop import end_state_line
+
+        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+        after = m.get("safe_after_cycles", "unknown")
+        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                               {res.axis: None if after == "unknown" else int(after)})
+        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
               "no response written", file=sys.stderr)
         return 1
     write_bode(res, args.out)

@@ -3,9 +3,14 @@
 Exit codes: 0 done; 1 the run was stopped by a limit (following error, soft limit; trace kept) or the
 bus/drive refused a command, or the trace could not be written whole (disk full after the checks);
 2 bad input (one line on stderr naming the file and the key); 3 a fault ended the run (drive fault,
-lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position; axis stopped, trace kept
-with the fault in its metadata); 130 / 143 interrupted by SIGINT / SIGTERM (the axis quick-stopped and
-disabled, the trace kept).
+lost TPDOs or heartbeat, unexpected boot-up, bus error, implausible position, a rogue RPDO or SYNC
+producer, a foreign NMT command; axis stopped, trace kept with the fault in its metadata), or a
+completed run passed a ``[checks]`` fault threshold, or a stop the drive did not confirm (the line says
+the axis may still be powered and what was tried); 4 completed with warnings (missed deadlines,
+clipped or extrapolated cycles past a ``[checks]`` warning threshold: a line each); 130 / 143
+interrupted by SIGINT / SIGTERM (quick stop, the axes' end state as the drives reported it; the trace
+kept). Every word about an axis's end state comes from the drive's own statusword after the stop
+(controllers/safe_stop.py).
 """
 
 from __future__ import annotations
@@ -21,7 +26,7 @@ from drivectl import __version__
 if TYPE_CHECKING:
     from drivectl.controllers.interrupt import StopRequest
 
-EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT = 0, 1, 2, 3
+EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT, EXIT_WARNINGS = 0, 1, 2, 3, 4
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -217,8 +222,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                                  "drive stops by itself per 0x6007), or inject it on the drive side: "
                                  "drivectl emulate --fault")
     profiles = {name: axis_profile(cfg, name, args.profile) for name in names}
-    if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
-        check_run_length(args.duration, cfg.cycle_s, "--duration")
+    if args.duration is not None:  # before a bus opens (the cap of the run's kind is checked below)
+        check_run_length(args.duration, cfg.cycle_s, "--duration", streamed=True)
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
     models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
@@ -243,14 +248,15 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     checks.check_bus_log(args.bus_log)
     # the outputs last (this creates --out): a folder we can write, with room for what the run records
     if args.duration is not None:
-        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration")
+        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration", streamed=plan is None)
     else:  # as the run will name it
         from drivectl.profiles.base import profile_name
 
         longest = max(profiles.values(), key=lambda p: p.duration)
         source = getattr(longest, "source", None)
         cycles = check_run_length(longest.duration, cfg.cycle_s,
-                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
+                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration",
+                                  streamed=plan is None)
     checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
     if plan is not None:  # the repetitions (tools/learn.py)
         return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,
@@ -278,9 +284,14 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         machine.close()
         raise
 
+    # a paced run is not lockstep, whatever the bus's description says
+    bus_text = machine.bus.replace("lockstep", "paced on the wall clock") if args.paced else machine.bus
+    if args.paced:
+        for ch in channels:
+            ch.meta["bus"] = bus_text
     try:
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {machine.bus} "
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text} "
                   "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         from drivectl.controllers.servo import plan_run
@@ -290,7 +301,9 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
         if approach is not None:
             consent(args.approach, moves)
-        plan = plan_run(channels, args.duration)  # before the approach: the run follows it within a cycle
+        # before the approach (the run follows it within a cycle); recorded only as it streams to --out:
+        # the run's memory does not grow with its length (the summary reads the file back)
+        plan = plan_run(channels, args.duration, keep=False)
         result = None
         if approach is not None:
             result = run_channels(approach, disable_at_end=False, pace=args.paced, stop_request=request)
@@ -303,8 +316,12 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:
         machine.close()
+    from drivectl.controllers.run_checks import apply, assess
     from drivectl.tools.trace_stream import TraceWriteError, clean_stale, write_trace
 
+    checked = assess(result.traces, cfg.checks) if result.ok else None
+    if checked is not None:  # the verdict into the traces (the streamed files' trailers too)
+        apply(result.traces, checked, result.paths)
     out = Path(args.out)
     clean_stale(out)
     written = []
@@ -338,21 +355,36 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         print(f"wrote {p}")
     for line in unwritten:
         print(f"drivectl: {line}", file=sys.stderr)
+    # every word about the axes' end state comes from what the drives reported after the stop
+    from drivectl.controllers.safe_stop import all_confirmed, end_state_line
+
+    f = result.fault
+    ended = f"({end_state_line(f.safe_state, f.safe_after)})" if f is not None else ""
     if result.stop is StopReason.INTERRUPTED:
         name = request.name or "SIGINT"
-        how = "axis quick-stopped and disabled" if result.enabled else "before the axes were enabled: nothing moved"
+        how = f"quick stop {ended}" if result.enabled else "before the axes were enabled: nothing moved"
         print(f"drivectl: interrupted by {name} after {result.cycles} cycles; {how}, trace kept", file=sys.stderr)
         return 128 + request.signum if request.signum else 130
-    if result.fault is not None and result.stop is StopReason.FAULT:
-        f = result.fault
-        state = ", ".join(f"{n} {s}" + (f" after {f.safe_after[n]} cycle(s)" if f.safe_after.get(n) is not None
-                                        else " to the master (no answer: the drive's own watchdogs stop it)")
-                          for n, s in f.safe_state.items())
-        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped ({state}), trace kept",
+    if f is not None and result.stop is StopReason.FAULT:
+        print(f"drivectl: fault: {f.kind} at cycle {f.cycle}: {f.detail}; stopped {ended}, trace kept",
               file=sys.stderr)
         return EXIT_FAULT
+    if checked is not None and checked.faults:
+        for line in checked.faults:
+            print(f"drivectl: fault: run check: {line}", file=sys.stderr)
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        return EXIT_FAULT
+    if checked is not None and checked.warnings:
+        for line in checked.warnings:
+            print(f"drivectl: warning: {line}", file=sys.stderr)
+        print("drivectl: completed with warnings", file=sys.stderr)
+        return EXIT_WARNINGS
     if not result.ok:
-        print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, trace kept", file=sys.stderr)
+        if f is not None and not all_confirmed(f.safe_after):  # a limit stop the drive did not confirm
+            print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
+            return EXIT_FAULT
+        print(f"drivectl: stopped: {result.detail}; quick stop {ended}, trace kept", file=sys.stderr)
         return EXIT_STOPPED
     return EXIT_STOPPED if unwritten else EXIT_OK
 

@@ -39,6 +39,15 @@ CASES: dict[str, tuple[str | None, str | None]] = {
     "sdo-abort": ("refused", "sdo abort"),
     "limit-switch": ("fault", "drive fault"),
     "master-dead": ("drive", None),
+    "rogue-rpdo": ("fault", "rogue rpdo"),
+    "rogue-sync": ("fault", "rogue sync"),
+    "foreign-nmt": ("fault", "foreign nmt"),
+    "foreign-nmt:command=0x80": ("fault", "foreign nmt"),
+    "foreign-nmt:command=0x82": ("fault", "foreign nmt"),
+    "malformed-frame": (None, None),
+    "malformed-frame:function=0x80,length=3": (None, None),
+    "malformed-frame:function=0x700,length=0,cycles=5": (None, None),
+    "malformed-frame:rtr=1,cycles=2": (None, None),
 }
 
 #: the bound every stop must meet: cycles from the detection to the torque off
@@ -95,7 +104,8 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
     if out_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="drivectl-faults-")
         out_dir = tmp.name
-    path = Path(out_dir) / f"{case.replace(':', '_').replace('=', '')}.csv"
+    # the run streams its trace into a folder of its own (x-STAMP.csv, x.csv the latest), as drivectl trace does
+    folder = Path(out_dir) / case.replace(":", "_").replace("=", "").replace(",", "_")
     try:
         try:
             machine = open_machine(cfg, ["x"], faults=[spec], start={"x": prof.start_position})
@@ -103,7 +113,7 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
             # refused while configuring: nothing moved, nothing written
             out.detected, out.kind, out.exit_reason = True, "sdo abort" if "abort" in str(exc) else "config", str(exc)
             out.safe_within_cycles, out.safe_state = 0, "never enabled"
-            out.trace_complete = not path.exists()
+            out.trace_complete = not folder.exists()
             out.note = "refused before anything moved: no trace by design (exit 2)"
             return out
         with machine:
@@ -121,7 +131,8 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
             channel = Channel(axis, ctrl, prof, ac.limits, {"injected": str(spec)})
             row0: list[int] = []  # the SYNC count of trace row 0
             try:
-                result = run_channels([channel], duration=duration, on_start=lambda n: row0.append(axis.clock.cycle))
+                result = run_channels([channel], duration=duration, on_start=lambda n: row0.append(axis.clock.cycle),
+                                      stream=folder)
             except MasterDied:
                 out.inject_cycle = _fired_row(machine, row0)
                 safe = machine.let_drives_run(50, until_safe=True)["x"]
@@ -131,21 +142,26 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
                 out.safe_within_cycles = safe
                 out.safe_state = drive.drive.power.value
                 out.exit_reason = "master died (no exit: the process is gone)"
-                out.trace_complete = False  # a dead master writes nothing (and nothing half: no file at all)
-                out.rows = -1 if path.exists() else 0
-                out.note = ("a killed master keeps no trace (drivectl emulate --bus-log records the frames); "
-                            "the drive stopped on its RPDO deadline (0x1400:05) per 0x6007")
+                # what the dead master streamed stays as a .partial file, every reader reads it (marked
+                # incomplete): whole when it holds every row up to the injection
+                partial = sorted(folder.glob("x-*.csv.partial"))
+                back = Trace.read(partial[0]) if len(partial) == 1 else None
+                out.rows = len(back) if back is not None else 0
+                out.meta = dict(back.meta) if back is not None else {}
+                out.trace_complete = (back is not None and out.inject_cycle is not None
+                                      and out.rows >= out.inject_cycle and bool(np.isfinite(back.pos).all()))
+                out.note = ("the master's streamed trace stays as a .partial file (up to its last flush); the "
+                            "drive stopped on its RPDO deadline (0x1400:05) per 0x6007")
                 return out
             out.inject_cycle = _fired_row(machine, row0)
-            tr = result.trace
-            tr.write(path)
-            back = Trace.read(path)
+            back = Trace.read(result.paths["x"])  # what the run streamed to disk, read back
             out.rows, out.meta = len(back), dict(back.meta)
             out.exit_reason = result.detail or "completed"
             n_planned = int(round(duration / cfg.cycle_s)) + 1
             finite = len(back) > 0 and bool(np.isfinite(back.pos).all() and np.isfinite(back.effort).all())
             if result.fault is None:
-                counted = sum(int(back.meta.get(k, "0")) for k in ("tpdo_lost_cycles", "tpdo_late_frames"))
+                counted = sum(int(back.meta.get(k, "0")) for k in ("tpdo_lost_cycles", "tpdo_late_frames",
+                                                                   "malformed_frames"))
                 out.detected = counted > 0
                 out.kind = f"tolerated ({counted} counted)"
                 out.safe_within_cycles = 0  # nothing to stop: the run went on, by design

@@ -242,7 +242,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
                            max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms,
-                           max_effort=ac.limits.max_effort)
+                           max_effort=ac.limits.max_effort, last_resort=ac.last_resort)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)

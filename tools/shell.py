@@ -169,6 +169,8 @@ class Shell(cmd.Cmd):
         err = handle.following_error
         at = f"at {format_position(handle.position)}" if handle.position is not None else ""
         tail = f", following error {err * 1e6:.2f} um" if err is not None else ""
+        if handle.status == "done" and handle.detail and not handle.settled:
+            tail += f" ({handle.detail})"  # ended, but not in position: say so
         self.say(f"{ax.name}: {what} {handle.status} in {took:.3f} s; {at}{tail}")
 
     def _wait(self, handle: Any, timeout: float) -> None:

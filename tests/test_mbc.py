@@ -37,8 +37,7 @@ def _open_loop(spec, profile) -> np.ndarray:
     ctrl = Mbc(DT, model=spec)
     n = int(round(profile.duration / DT)) + 1
     t = np.arange(n) * DT
-    ctrl.prepare(profile, t)
-    _, uff, fk, _ = ctrl._table
+    uff, fk = ctrl.feedforward(profile, t)
     plant = spec.build(DT)
     state = plant.initial_state(profile.start_position)
     y = np.empty(n)

@@ -31,6 +31,7 @@ the rigid-body approximation (q = M^2 w^8 sigma_x^2 dt for the chain position - 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -47,9 +48,11 @@ from drivectl.profiles.base import Reference
 
 @dataclass
 class MbcSettings(Settings):
-    bandwidth_hz: float = param(40.0, lo=0.1, hi=200.0, unit="Hz",
-                                doc="state-feedback bandwidth (rigid-body mode of the LQR loop)")
-    observer_hz: float = param(20.0, lo=0.1, hi=200.0, unit="Hz", doc="Kalman filter's disturbance bandwidth")
+    bandwidth_hz: float = param(0.0, lo=0.0, hi=200.0, unit="Hz",
+                                doc="state-feedback bandwidth (rigid-body mode of the LQR loop); 0: from the model "
+                                "(AUTO_HZ: 40 Hz with a coupling mode, 80 Hz for a rigid axis)")
+    observer_hz: float = param(0.0, lo=0.0, hi=200.0, unit="Hz",
+                               doc="Kalman filter's disturbance bandwidth; 0: from the model (20 Hz / 40 Hz)")
     mode_damping: float = param(10.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
                                 "active damping of the axial mode, relative to the position weight")
     position_noise_m: float = param(2.2e-8, lo=0.0, lo_open=True, unit="m",
@@ -61,6 +64,13 @@ class MbcSettings(Settings):
                               doc="auto: an oscillator at the model's disturbance frequency, else a ramp")
     friction_ff: bool = choice(True, (True, False), doc="compensate the model's friction in the feed-forward")
     feedforward: bool = choice(True, (True, False), doc="the model-inverse feed-forward (off: feedback only)")
+
+
+#: (bandwidth_hz, observer_hz) when the settings leave them 0, by the model's number of bodies: a coupling
+#: mode (two-mass) limits both (every +-10 % corner stays stable with margin: largest spectral radius 0.983);
+#: a rigid axis carries twice as much (0.949 on rigid-x's 32 corners), which the friction it must reject at
+#: its reversals needs (bench/precision.py: x with Stribeck and noise 15.6 -> 3.6 um)
+AUTO_HZ = {2: (40.0, 20.0), 1: (80.0, 40.0)}
 
 
 class _Extrapolated:
@@ -180,6 +190,7 @@ class Mbc(Controller):
         self.spec = model
         self._table: tuple[np.ndarray, ...] | None = None
         self._design_for: Any = None
+        self._auto: list[str] = []
         super().__init__(dt, settings, **kwargs)
 
     @classmethod
@@ -193,6 +204,13 @@ class Mbc(Controller):
     # ---------------------------------------------------------------------------------------------
     def _ensure_design(self) -> None:
         s = self.settings
+        auto = dict(zip(("bandwidth_hz", "observer_hz"), AUTO_HZ[self.model.n_bodies], strict=True))
+        auto = {k: v for k, v in auto.items() if not getattr(s, k)}
+        if auto:
+            # 0 = from the model: resolved into (a copy of) the settings, so the design, the trace's metadata
+            # and tune's starting point all see the number
+            s = self.settings = dataclasses.replace(s, **auto)
+            self._auto += list(auto)
         key = tuple(s.as_dict().values())
         if self._design_for == key:
             return

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -208,7 +209,16 @@ class CanopenAxis:
     def connect(self) -> None:
         """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
         self._boot()
-        self._check_identity()
+        # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
+        # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
+        # retries of canopen's client (0.3 s each) for this one exchange
+        sdo = self.node.sdo
+        retries = sdo.MAX_RETRIES
+        sdo.MAX_RETRIES = max(retries, 3)
+        try:
+            self._check_identity()
+        finally:
+            sdo.MAX_RETRIES = retries
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)
@@ -236,7 +246,13 @@ class CanopenAxis:
         self._connected = True
 
     def _wait(self, event: threading.Event, what: str) -> None:
-        # in lockstep the reply was delivered during the send; otherwise wait for the notifier
+        # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
+        # comes some tens of ms after the reset); otherwise wait for the notifier
+        if self.lockstep:
+            for _ in range(round(self.timeout / self.dt)):
+                if event.is_set():
+                    break
+                self.network.lockstep.advance(self.dt)
         if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
 
@@ -257,6 +273,22 @@ class CanopenAxis:
 
     def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
         what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
+        if getattr(self, "_awaiting_boot", False):
+            # a reset we saw another master send: the drive answers once it has booted (tens of ms)
+            for _ in range(round(self.timeout / self.dt)):
+                if not self._awaiting_boot:
+                    break
+                if self.lockstep:
+                    self.network.lockstep.advance(self.dt)
+                else:
+                    time.sleep(self.dt)
+            self._awaiting_boot = False
+        if self._connected and self.heartbeat_state == NmtState.STOPPED:
+            # a Stopped drive answers no SDO (CiA 301): Pre-operational first (no PDO there either)
+            self._nmt_own = True
+            self._sent_stop = False
+            self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
         try:
             var = self.node.sdo[index] if sub is None else self.node.sdo[index][sub]
             if value is None:
@@ -376,6 +408,7 @@ class CanopenAxis:
         if not self._connected:
             return
         if state == 0:
+            self._awaiting_boot = False
             self._rebooted = True  # a boot-up while we run the drive: it reset by itself
         elif state == NmtState.OPERATIONAL:
             self._seen_operational = True
@@ -409,6 +442,10 @@ class CanopenAxis:
             names = {int(c): c.name.replace("_", " ").lower() for c in NmtCommand}
             self._foreign = (FaultKind.FOREIGN_NMT, f"NMT {names.get(data[0], f'0x{data[0]:02X}')} to "
                              f"{'all nodes' if data[1] == 0 else f'node {data[1]}'} from another master")
+            if data[0] == NmtCommand.STOP:
+                self.heartbeat_state = int(NmtState.STOPPED)  # it will not answer SDO (see _sdo)
+            elif data[0] in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
+                self._awaiting_boot = True  # it answers no SDO until its boot-up (see _sdo)
 
     def _on_emcy(self, entry: canopen.emcy.EmcyError) -> None:
         self.last_emcy = (entry.code, self.clock.cycle)
@@ -508,11 +545,18 @@ class CanopenAxis:
         0x6007, stops its power stage. The drive's reply comes by SDO after NMT Pre-operational
         (:meth:`refresh_state_outside_operational`); a Stopped node need not answer SDO."""
         self._nmt_own = True
+        self._sent_stop = True
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.STOP, self.node_id]))
 
     def refresh_state_outside_operational(self) -> PowerState:
         """The statusword by SDO; if the drive is NMT Stopped and does not answer, NMT Pre-operational
-        first (SDO works there, PDOs still do not)."""
+        first (SDO works there, PDOs still do not). Known Stopped (by our NMT Stop or its heartbeat): Pre-operational
+        at once (a conforming drive answers no SDO in Stopped, CiA 301; waiting for the SDO timeout costs 0.6 s)."""
+        if getattr(self, "_sent_stop", False):
+            self._sent_stop = False
+            self._nmt_own = True
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+            return self.refresh_state()
         try:
             return self.refresh_state()
         except AxisError:

@@ -121,6 +121,7 @@ class BusConfig:
     host: str = "127.0.0.1"  # socketcand only
     port: int = 29536  # socketcand only
     options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
+    load_ceiling_pct: float = 70.0  # the most of the bitrate the cyclic frames may take (tools/bus_budget.py)
 
     def open_kwargs(self) -> dict[str, Any]:
         """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
@@ -136,7 +137,7 @@ class ConfigError(ValueError):
 
 def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     """The [bus] table: any interface python-can knows, its options passed through to ``can.Bus``."""
-    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options"}
+    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options", "load_ceiling_pct"}
     if extra:
         raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
     from drivectl.driver.network import INTERFACES, RESERVED_OPTIONS
@@ -171,8 +172,11 @@ def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     if options and interface == "virtual":
         raise ConfigError(f"{src}: bus.options: the virtual bus takes no options (it carries the in-process "
                           f"emulated drives in lockstep); remove them or choose the adapter's interface")
+    ceiling = _number(src, "bus.load_ceiling_pct", bus_raw.get("load_ceiling_pct", 70.0), positive=True)
+    if ceiling > 100:
+        raise ConfigError(f"{src}: bus.load_ceiling_pct: a per cent of the bitrate, 0 < x <= 100, got {ceiling:g}")
     return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
-                     dict(options))
+                     dict(options), ceiling)
 
 
 @dataclass(frozen=True)

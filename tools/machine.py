@@ -186,6 +186,10 @@ def open_machine(
             raise FaultSpecError(f"--fault {spec}: axis {spec.axis!r} is not in this run ({', '.join(names)})")
     start = start or {}
     specs = plant_specs(cfg, names, plant, effects)
+    if not sim:
+        from drivectl.tools.bus_budget import check_bus_load
+
+        check_bus_load(cfg, names)  # over the ceiling: refused here, before any drive is configured or enabled
     dt = cfg.cycle_s
     if sim:
         if bus_log:
@@ -323,6 +327,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
             session.drives[name] = drive
         for drive in session.drives.values():
             drive.boot()
+        lockstep.advance(0.1)  # power-on: the drives take some tens of ms to boot
         return session
     net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs()))
     session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])

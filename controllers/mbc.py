@@ -52,7 +52,7 @@ class MbcSettings(Settings):
                                 doc="state-feedback bandwidth (rigid-body mode of the LQR loop); 0: from the model "
                                 "(AUTO_HZ: 40 Hz with a coupling mode, 80 Hz for a rigid axis)")
     observer_hz: float = param(0.0, lo=0.0, hi=200.0, unit="Hz",
-                               doc="Kalman filter's disturbance bandwidth; 0: from the model (20 Hz / 40 Hz)")
+                               doc="Kalman filter's disturbance bandwidth; 0: from the model (AUTO_HZ: 20 Hz)")
     mode_damping: float = param(10.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
                                 "active damping of the axial mode, relative to the position weight")
     position_noise_m: float = param(2.2e-8, lo=0.0, lo_open=True, unit="m",
@@ -68,9 +68,10 @@ class MbcSettings(Settings):
 
 #: (bandwidth_hz, observer_hz) when the settings leave them 0, by the model's number of bodies: a coupling
 #: mode (two-mass) limits both (every +-10 % corner stays stable with margin: largest spectral radius 0.983);
-#: a rigid axis carries twice as much (0.949 on rigid-x's 32 corners), which the friction it must reject at
-#: its reversals needs (bench/precision.py: x with Stribeck and noise 15.6 -> 3.6 um)
-AUTO_HZ = {2: (40.0, 20.0), 1: (80.0, 40.0)}
+#: a rigid axis carries twice the state-feedback bandwidth (0.964 on rigid-x's 32 corners), which the friction
+#: it must reject at its reversals needs (bench/precision.py: x with Stribeck and noise 15.6 -> 11.0 um, with
+#: explain's model 2.4 um)
+AUTO_HZ = {2: (40.0, 20.0), 1: (80.0, 20.0)}
 
 
 class _Extrapolated:

@@ -34,7 +34,7 @@ def test_the_model_augmented_with_stribeck_cuts_the_error_threefold(tmp_path):
     path.write_text(augmented.to_toml("as drivectl explain writes it"))
     nominal = _run(tmp_path, "nominal", "--effect", STRIBECK, "--duration", "5.5")
     explained = _run(tmp_path, "explained", "--effect", STRIBECK, "--duration", "5.5", "--model", str(path))
-    assert np.abs(nominal).max() > 10.0
+    assert np.abs(nominal).max() > 2.0  # the unmodelled Stribeck costs micrometres (10 um with mbc's rigid 80 Hz)
     assert np.abs(explained).max() * 3 <= np.abs(nominal).max()
 
 

@@ -47,9 +47,9 @@ rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): 
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
-# controller = "mbc" (no settings) tracks the circle within 0.12 um against ASMC's 0.19, but with a 25 %
-# rougher effort (1.32 against 1.05 N per cycle): by tune's cost J the two are even, so x keeps the paper's.
-# With an unmodelled Stribeck effect mbc holds 11 um against 38 (bench/precision.py, README "Precision").
+# controller = "mbc" (no settings) tracks the circle within 0.10 um against ASMC's 0.19, but with a 28 %
+# rougher effort (1.34 against 1.05 N per cycle): by tune's cost J ASMC is ahead, so x keeps the paper's.
+# With an unmodelled Stribeck effect and noise mbc holds 11 um against 38 (bench/precision.py, README).
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits

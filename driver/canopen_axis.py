@@ -66,6 +66,9 @@ EMCY_KEPT = 32
 #: the mapping drivectl configures: RPDO1 controlword + target torque; TPDO1 statusword + position;
 #: TPDO2 velocity + torque actual (48 bits each, synchronous, transmission type 1)
 RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
+#: the compact mapping (``bus.pdo_mapping = "compact"``, tools/bus_budget.py): one 8-byte TPDO with statusword,
+#: position and torque actual; the velocity derived on the host from two positions (as SimAxis does)
+COMPACT_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),)
 TPDO_ENTRIES = (
     ((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),
     ((cia402.VELOCITY_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),
@@ -122,6 +125,7 @@ class CanopenAxis:
         rpdo_timeout_ms: int | None = None,
         max_effort: float = math.inf,
         last_resort: str = "nmt-reset",
+        mapping: str = "full",
     ):
         self.name = name
         self.dt = dt
@@ -179,13 +183,18 @@ class CanopenAxis:
         self._controlword = 0
         self._rpdo_cob = RPDO_BASE[0] + node_id
         self._rpdo = PdoLayout.from_entries(od, RPDO_ENTRIES)
-        self._tpdo = [PdoLayout.from_entries(od, e) for e in TPDO_ENTRIES]
-        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(TPDO_ENTRIES))]
-        self._fresh = [False] * len(TPDO_ENTRIES)
-        self._raw = [(0, 0), (0, 0)]
+        if mapping not in ("full", "compact"):
+            raise ValueError(f"axis {name}: mapping: expected full or compact, got {mapping!r}")
+        self.mapping = mapping
+        self._tpdo_entries = COMPACT_TPDO_ENTRIES if mapping == "compact" else TPDO_ENTRIES
+        self._tpdo = [PdoLayout.from_entries(od, e) for e in self._tpdo_entries]
+        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(self._tpdo_entries))]
+        self._fresh = [False] * len(self._tpdo_entries)
+        self._raw = [(0, 0, 0)] if mapping == "compact" else [(0, 0), (0, 0)]
+        self._prev_counts: tuple[int, int] | None = None  # compact: (counts, cycle) of the last sample
         # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
         # reset does not stack a second handler per TPDO (each would count a late frame again)
-        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(TPDO_ENTRIES))]
+        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo_entries))]
         self._arrived = threading.Event()
         self._last_heartbeat = 0
         self.heartbeat_state: int | None = None
@@ -237,8 +246,10 @@ class CanopenAxis:
         self.power = cia402.decode_statusword(self.statusword)
         self.state_fresh, self.state_source = True, "SDO"
         self._controlword = self.master.controlword(self.power)
-        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(
-            self._sdo(cia402.POSITION_ACTUAL)), 0.0)
+        counts = self._sdo(cia402.POSITION_ACTUAL)
+        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
+        if self.mapping == "compact":
+            self._prev_counts = (counts, self.clock.cycle)
         self.lost_cycles = 0
         self._rebooted = False
         self._consumed = self.clock.cycle
@@ -345,7 +356,8 @@ class CanopenAxis:
         node = self.node
         node.rpdo.read()
         node.tpdo.read()
-        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE), (node.tpdo, TPDO_ENTRIES, TPDO_BASE)):
+        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE),
+                                   (node.tpdo, self._tpdo_entries, TPDO_BASE)):
             for n, pdo in maps.map.items():
                 pdo.clear()
                 if n <= len(wanted):
@@ -490,13 +502,19 @@ class CanopenAxis:
             self.lost_cycles = 0
             for i in range(len(fresh)):
                 fresh[i] = False
-            (sw, counts), (vel_counts, _torque) = self._raw
+            enc = self.encoder
+            if self._prev_counts is None:
+                (sw, counts), (vel_counts, _torque) = self._raw
+                velocity = enc.from_counts(vel_counts)
+            else:  # compact: the velocity from this position and the last one received (as SimAxis derives it)
+                sw, counts, _torque = self._raw[0]
+                velocity = enc.velocity(counts, self._prev_counts[0], (cycle - self._prev_counts[1]) * self.dt)
+                self._prev_counts = (counts, cycle)
             self.statusword = sw
             self.power = cia402.decode_statusword(sw)
             self.state_fresh, self.state_source = True, "TPDO"
             self._controlword = self.master.controlword(self.power)
-            enc = self.encoder
-            fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
+            fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), velocity)
             return fb
         # no (complete) sample: bridge the cycle by extrapolating the last one; too many in a row is a fault
         self.lost_cycles += 1
@@ -514,7 +532,7 @@ class CanopenAxis:
     def torque_actual(self) -> float:
         """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""
         try:
-            return self.scale.from_permille(self._raw[1][1])
+            return self.scale.from_permille(self._raw[0][2] if self.mapping == "compact" else self._raw[1][1])
         except (IndexError, TypeError):
             return math.nan
 

@@ -22,9 +22,10 @@ drivectl's (TPDO 6+6, R 4)  269 (325)   31.6 %     58.5 %     85.4 %     112.3 %
 compact (TPDO 8, RPDO 4)    190 (230)   23.7 %     42.7 %     61.7 %     80.7 %
 =========================  ===========  =========  =========  =========  =========
 
-So four axes at 1 kHz do not fit one 1 Mbit/s bus under 70 % with any mapping that carries a statusword,
-a position and a torque setpoint per axis each cycle (the frames alone are 80.7 % nominal); at a 2 ms cycle
-they take 40.4 % (48.8 % bound).
+``bus.pdo_mapping = "auto"`` (default) uses the full mapping where it fits, else the compact one
+(:func:`resolve_mapping`). So four axes at 1 kHz do not fit one 1 Mbit/s bus under 70 % with any
+mapping that carries a statusword, a position and a torque setpoint per axis each cycle (the compact
+frames alone are 80.7 % nominal); at a 2 ms cycle they take 40.4 % (48.8 % bound).
 """
 
 from __future__ import annotations
@@ -99,8 +100,22 @@ class BusLoadError(ConfigError):
     """The configured axes would load the bus past the ceiling: refused before anything is enabled."""
 
 
+def resolve_mapping(cfg: MachineConfig, axes: int) -> str:
+    """The mapping a run of ``axes`` axes uses: ``bus.pdo_mapping``, where "auto" (the default) is drivectl's
+    full mapping when it fits under the ceiling and the compact one otherwise. The full mapping carries the
+    drive's own velocity (0x606C), which the controllers were tuned on; the compact one derives it on the
+    host from two positions (SimAxis the same, so --sim still equals the bus bit for bit)."""
+    mapping = getattr(cfg.bus, "pdo_mapping", "auto")
+    if mapping != "auto":
+        return mapping
+    ceiling = getattr(cfg.bus, "load_ceiling_pct", DEFAULT_CEILING_PCT)
+    full = bus_load(axes, cfg.cycle_s, cfg.bus.bitrate, "full")
+    return "full" if full.nominal_pct <= ceiling and full.bound_pct < 100.0 else "compact"
+
+
 def machine_load(cfg: MachineConfig, names: Sequence[str] | None = None) -> BusLoad:
-    return bus_load(len(names) if names is not None else len(cfg.axes), cfg.cycle_s, cfg.bus.bitrate)
+    n = len(names) if names is not None else len(cfg.axes)
+    return bus_load(n, cfg.cycle_s, cfg.bus.bitrate, resolve_mapping(cfg, n))
 
 
 def check_bus_load(cfg: MachineConfig, names: Sequence[str]) -> BusLoad:
@@ -110,12 +125,19 @@ def check_bus_load(cfg: MachineConfig, names: Sequence[str]) -> BusLoad:
     load = machine_load(cfg, names)
     ceiling = getattr(cfg.bus, "load_ceiling_pct", DEFAULT_CEILING_PCT)
     if load.nominal_pct > ceiling or load.bound_pct >= 100.0:
-        fit = axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling)
+        fit = axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, load.mapping)
+        if getattr(cfg.bus, "pdo_mapping", "auto") == "auto":
+            fit = max(fit, axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, "compact"))
         raise BusLoadError(
             f"{cfg.source}: bus: {load.nominal_pct:.1f} % bus load ({load.bound_pct:.1f} % with worst-case "
             f"stuffing) for {load.axes} axes at {cfg.cycle_s * 1e3:g} ms on {cfg.bus.bitrate / 1e6:g} Mbit/s is over "
             f"the {ceiling:g} % ceiling (bus.load_ceiling_pct): {fit} axes fit; a longer cycle_s or a second bus")
     return load
+
+
+def _mappings(cfg: MachineConfig) -> tuple[str, ...]:
+    mapping = getattr(cfg.bus, "pdo_mapping", "auto")
+    return ("full", "compact") if mapping == "auto" else (mapping,)
 
 
 def show_lines(cfg: MachineConfig) -> list[str]:
@@ -126,9 +148,12 @@ def show_lines(cfg: MachineConfig) -> list[str]:
     for what, n in MAPPINGS[load.mapping]:
         nom, bound = frame_bits(n)
         lines.append(f"#   {what}: {n} bytes, {nom} bits ({bound} with worst-case stuffing)")
+    if getattr(cfg.bus, "pdo_mapping", "auto") == "auto":
+        lines.append("#   (bus.pdo_mapping = \"auto\": the full mapping where it fits under the ceiling, else compact)")
     lines.append(f"# {load.text()}")
     lines.append(f"# ceiling {ceiling:g} % (bus.load_ceiling_pct): "
-                 f"{axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling)} axes fit at this cycle and bitrate"
+                 f"{max(axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, m) for m in _mappings(cfg))} axes fit at "
+                 "this cycle and bitrate"
                  + ("" if load.nominal_pct <= ceiling and load.bound_pct < 100 else "; OVER: runs of all axes are "
                     "refused"))
     return lines

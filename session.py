@@ -289,6 +289,13 @@ class AxisControl:
                 raise LimitError(f"axis {self.name}: run {profile_name(profile)}: spans [{lo:.6f}, {hi:.6f}] m, "
                                  f"outside the soft limits [{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; "
                                  "nothing moved")
+        m = rt.motion  # a profile is not generated here, but it moves the axis: the same bounds hold
+        for what, arr, bound, key in (("velocity", samples[1], m.max_velocity, "max_velocity_m_s"),
+                                      ("acceleration", samples[2], m.max_acceleration, "max_acceleration_m_s2")):
+            peak = float(np.max(np.abs(arr))) if len(arr) else 0.0
+            if peak > bound * (1 + 1e-9) + 1e-12:
+                raise LimitError(f"axis {self.name}: run {profile_name(profile)}: {what} {peak:g} exceeds the axis's "
+                                 f"{key} {bound:g} ([axes.{self.name}.motion]); nothing moved")
         far = abs(start + offset - here) > 1e-6
         if far and not approach:
             raise LimitError(f"axis {self.name}: run {profile_name(profile)}: the axis stands at {here:.6f} m, the "

@@ -646,7 +646,9 @@ class ServoLoop:
         if slack < 0.5 * self.dt:
             return
         t0 = self._now()
-        gc.collect(1 if k % 10_000 == 0 else 0)
+        # young every 0.1 s, middle every 10 s, and what survived those once a minute (what a program
+        # beside the loop leaves in cycles, e.g. plotting, must not grow without bound)
+        gc.collect(2 if k % 60_000 == 0 else 1 if k % 10_000 == 0 else 0)
         took = self._now() - t0
         self.gc_runs += 1
         if took > self.gc_worst:

@@ -136,6 +136,8 @@ def test_relative_run_of_a_profile(machine):
     prof = PointToPoint(0.0, 0.005, 0.05, 0.5, 20.0, hold_until=0.4)
     with pytest.raises(LimitError, match="starts at"):
         x.run(prof)  # absolute: the axis is not at the start
+    with pytest.raises(LimitError, match=r"velocity 0.44\d+ exceeds the axis's max_velocity_m_s 0.1"):
+        x.run(PointToPoint(0.0, 0.05, 0.5, 5.0, 200.0), relative=True)
     h = x.run(prof, relative=True, record=machine.loop.fault_dir).wait(5)
     assert h.status == "done"
     tr = h.trace

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import signal
+import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
@@ -220,6 +221,11 @@ class AxisControl:
             toward = hi - margin if velocity > 0 else lo + margin
         else:
             toward = rt.traj.position + math.copysign(1e3, velocity)
+        if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
+            done = Move(self._m.loop, self.name, "jog", velocity)
+            done._end("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
+                      "window inside it); nothing moved")
+            return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
         speed = abs(velocity)
         current = rt.handle
@@ -228,6 +234,8 @@ class AxisControl:
             def renew() -> None:
                 if rt.handle is current:
                     rt.jog_until = loop.cycle + deadman
+                    if rt.traj.stopping:  # the dead man had begun the stop: on again
+                        rt.traj.move_to(toward, speed)
             loop.submit(renew)
             return current
 
@@ -425,6 +433,7 @@ class Machine:
         self.bus = hardware.bus
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
+        self.unconfirmed: list[str] = []  # axes whose drive did not confirm the disable on close
         self._lockstep_bus = all(getattr(a, "lockstep", True) for a in hardware.axes.values())
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
@@ -494,6 +503,12 @@ class Machine:
             self.hardware.close()
             for h in self._streamed:
                 h._close_record()  # a run cut short by the close: its record ends here, trailer and all
+        # what the drives said, never what was meant: an axis that did not confirm is named
+        self.unconfirmed = [n for n, st in states.items() if st == PowerState.OPERATION_ENABLED.value]
+        for n in self.unconfirmed:
+            print(f"drivectl: axis {n}: the drive last reported Operation Enabled after the disable: it may still "
+                  "be powered (its own watchdogs, RPDO deadline and master heartbeat, stop it now the bus is closed)",
+                  file=sys.stderr)
         return states
 
     def __enter__(self) -> Machine:

@@ -136,7 +136,7 @@ class ScalarOps:
 
     @staticmethod
     def sign(x: float) -> float:
-        return (x > 0.0) - (x < 0.0)
+        return float(x > 0.0) - float(x < 0.0)  # float(): numpy scalars (np.bool_) do not subtract
 
     @staticmethod
     def where(cond: bool, a: float, b: float) -> float:

@@ -142,7 +142,11 @@ class Move:
         ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
         TimeoutError when it has not ended within ``timeout``."""
         if not self.loop.wait_until(self._done.is_set, timeout):
-            raise TimeoutError(f"axis {self.axis}: {self.kind} not done within {timeout:g} s (status {self.status})")
+            if self.loop.error is not None:
+                raise AxisError(f"axis {self.axis}: {self.kind}: the servo loop ended ({self.loop.error!r}); the "
+                                "drives' own watchdogs stop the axes")
+            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
+            raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
         self._close_record()
         if self.status == "fault":
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
@@ -264,6 +268,8 @@ class ServoLoop:
         self.missed = 0
         self.worst_late = 0.0
         self.stalls = 0
+        self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
+        self.skipped = 0  # slots skipped because the loop was that far behind
         self.gc_runs = 0
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
@@ -278,7 +284,7 @@ class ServoLoop:
         self._stalled = False
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
-        self._gc_was_enabled = gc.isenabled()
+        self._gc_taken = False  # this loop holds the process's collector (wall clock)
         self.error: BaseException | None = None  # what killed the loop thread, if anything
         #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
         self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
@@ -322,14 +328,16 @@ class ServoLoop:
                     cap.cancel("the machine closed before it completed")
                 rt.captures.clear()
             self.flush()
-            if self.gc_control and self.clock == "wall":
-                gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            if self._gc_taken:
+                _release_gc()
+                self._gc_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
-                if self._gc_was_enabled:
-                    gc.enable()
         for rt in self._rts:
-            states[rt.name] = rt.ch.axis.power.value
+            axis = rt.ch.axis
+            if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
+                _quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+            states[rt.name] = axis.power.value
         return states
 
     def flush(self, timeout: float | None = 30.0) -> list[Path]:
@@ -609,11 +617,13 @@ class ServoLoop:
                     self._on_stall(t - last)
                 behind = int((t - pacer.t0) / self.dt) - k
                 if behind > 1:  # far behind: skip the lost slots instead of bursting cycles to catch up
-                    pacer.missed += behind - 1
+                    pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
+                    self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
                 self._cycle_all()
                 self._last_cycle_t = now()
                 k += 1
+                self.slots = k
                 self.missed, self.worst_late = pacer.missed, pacer.worst_late
                 if self.gc_control and k % 100 == 0:
                     self._collect(pacer, k)
@@ -623,9 +633,8 @@ class ServoLoop:
 
     def _setup_thread(self) -> None:
         if self.gc_control:
-            gc.collect()
-            gc.freeze()  # what exists now is never scanned again: young collections stay short
-            gc.disable()
+            _take_gc()
+            self._gc_taken = True
             self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
             try:
@@ -682,13 +691,14 @@ class ServoLoop:
 
     # -- what the user's side reads ----------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        n = max(self.cycle, 1)
+        n = max(self.slots if self.clock == "wall" else self.cycle, 1)
         out: dict[str, Any] = {
             "clock": "wall clock, paced" if self.clock == "wall" else "lockstep (simulated time)",
             "cycle_s": self.dt,
             "cycles": self.cycle,
-            "missed_deadlines": self.missed,
-            "missed_fraction": self.missed / n,
+            "missed_deadlines": self.missed,  # cycles that started over half a period late, skipped ones included
+            "missed_fraction": self.missed / n,  # of the cycle slots since the start
+            "skipped_cycles": self.skipped,
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
             "stall_bound_ms": self.stall_s * 1e3,
@@ -714,6 +724,32 @@ class ServoLoop:
 
 
 _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
+
+# the collector is the process's: the first wall-clock loop takes it, the last one gives it back
+_gc_lock = threading.Lock()
+_gc_holders = 0
+_gc_was_enabled = True
+
+
+def _take_gc() -> None:
+    global _gc_holders, _gc_was_enabled
+    with _gc_lock:
+        if _gc_holders == 0:
+            _gc_was_enabled = gc.isenabled()
+            gc.collect()
+            gc.freeze()  # what exists now is never scanned again: young collections stay short
+            gc.disable()
+        _gc_holders += 1
+
+
+def _release_gc() -> None:
+    global _gc_holders
+    with _gc_lock:
+        _gc_holders -= 1
+        if _gc_holders == 0:
+            gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            if _gc_was_enabled:
+                gc.enable()
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

@@ -50,7 +50,7 @@ class MbcSettings(Settings):
     bandwidth_hz: float = param(40.0, lo=0.1, hi=200.0, unit="Hz",
                                 doc="state-feedback bandwidth (rigid-body mode of the LQR loop)")
     observer_hz: float = param(20.0, lo=0.1, hi=200.0, unit="Hz", doc="Kalman filter's disturbance bandwidth")
-    mode_damping: float = param(30.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
+    mode_damping: float = param(10.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
                                 "active damping of the axial mode, relative to the position weight")
     position_noise_m: float = param(2.2e-8, lo=0.0, lo_open=True, unit="m",
                                     doc="position measurement noise (76.29 nm counts: 22 nm)")
@@ -164,6 +164,8 @@ class Mbc(Controller):
     name = "mbc"
     origin = "model-based (exact inverse + Kalman + LQR)"
     SettingsClass = MbcSettings
+    #: the gains come from a design (Riccati equations), not array maths: no batch of gain sets
+    batch_settings = False
 
     def __init__(self, dt: float, settings: Settings | Mapping[str, Any] | None = None, *, model: Any = None,
                  **kwargs: Any):

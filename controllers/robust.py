@@ -14,8 +14,7 @@ The check, per corner:
   radius; stable iff < 1. Exact for the linear part, and cheap (one eigenvalue problem).
 * **otherwise** (a nonlinear controller or plant): a simulation of the axis's move on the corner (SimAxis,
   as ``tune`` runs it); unstable when the run leaves the limits, does not stay finite, or its error does
-  not decay: the largest error of the last fifth of the run is at least half the run's largest and above
-  :data:`DIVERGED_UM` (a stable loop settles in the hold; a diverging or limit-cycling one does not).
+  not settle (:func:`settles`: growing at the end, or not decaying in a final hold).
 """
 
 from __future__ import annotations
@@ -92,7 +91,8 @@ def spectral_radius(controller: Any, true_spec: Any) -> float:
 def check_corners(make: Any, specs: Sequence[Any], *, simulate: Any = None) -> list[CornerResult]:
     """Check one design on each of ``specs``: ``make(spec)`` builds the controller for the loop (its model
     stays the nominal one: only the plant is the corner), ``simulate(spec)`` runs it and returns
-    (completed, max_um, tail_max_um) for the nonlinear check. Linear when the controller has
+    (completed, error per cycle in m, the reference's change per cycle) for the nonlinear check
+    (:func:`settles`). Linear when the controller has
     ``loop_matrix`` and the corner's plant has no nonlinearity; simulation otherwise."""
     out = []
     for spec in specs:
@@ -103,12 +103,35 @@ def check_corners(make: Any, specs: Sequence[Any], *, simulate: Any = None) -> l
             continue
         if simulate is None:
             raise ValueError(f"corner {spec.name}: not a linear loop and no simulation given")
-        completed, max_um, tail_um = simulate(spec)
-        stable = bool(completed and math.isfinite(max_um)
-                      and not (tail_um >= 0.5 * max_um and tail_um > DIVERGED_UM))
-        detail = "" if stable else ("run stopped" if not completed else f"tail {tail_um:.3g} um of {max_um:.3g}")
+        completed, error, ref_step = simulate(spec)
+        stable = bool(completed and settles(error, ref_step))
+        max_um = float(np.max(np.abs(error))) * 1e6 if len(error) else math.nan
+        detail = "" if stable else ("run stopped" if not completed else "the error does not settle")
         out.append(CornerResult(spec.name, stable, max_um=max_um, detail=detail))
     return out
+
+
+def settles(error: np.ndarray, ref_step: np.ndarray) -> bool:
+    """Does a simulated run's error (m, per cycle) look like a stable loop's? Not when it is not finite,
+    when it grows (the largest error of the last fifth is over three times that of the rest and above
+    :data:`DIVERGED_UM`), or, where the run ends holding still (``ref_step``, the reference's change per
+    cycle, is 0 over its last 50 cycles or more), when the error does not decay over that hold (the
+    largest of its second half is at least half that of its first half, and above DIVERGED_UM): a stable
+    loop settles in the hold, a diverging or limit-cycling one does not."""
+    e = np.abs(np.asarray(error, dtype=float)) * 1e6
+    if e.size == 0 or not np.all(np.isfinite(e)):
+        return False
+    cut = max(1, int(0.8 * e.size))
+    tail, head = float(e[cut:].max(initial=0.0)), float(e[:cut].max(initial=0.0))
+    if tail > DIVERGED_UM and tail > 3.0 * head:
+        return False
+    moving = np.flatnonzero(np.asarray(ref_step)[: e.size])
+    hold = e[moving[-1] + 1:] if moving.size else e
+    if hold.size < 50:
+        return True
+    half = hold.size // 2
+    first, second = float(hold[:half].max()), float(hold[half:].max())
+    return not (second > DIVERGED_UM and second >= 0.5 * first)
 
 
 def _is_linear(spec: Any) -> bool:

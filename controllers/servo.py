@@ -19,6 +19,7 @@ three) are counted, and the fault (kind, cycle, statusword, 0x603F text) goes in
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -49,20 +50,23 @@ class LimitError(ValueError):
     """A run was refused before anything moved (profile outside limits, axis not at the start)."""
 
 
-#: the most cycles one run records: the references are sampled and the trace is held in memory for the
-#: whole run (about 130 bytes per cycle and axis), so one hour at 1 kHz is about 0.5 GB per axis
+#: the most cycles a run records in memory (``keep=True``: 32 bytes per cycle and axis), one hour at 1 kHz
 MAX_RUN_CYCLES = 3_600_000
+#: the most cycles of a run that records only as it streams (constant memory; the limit is the file's:
+#: about 24 days at 1 kHz, some 60 GB per axis)
+MAX_STREAMED_CYCLES = 2**31 - 1
 
 
-def check_run_length(duration: float, dt: float, what: str = "run: duration") -> int:
+def check_run_length(duration: float, dt: float, what: str = "run: duration", *, streamed: bool = False) -> int:
     """The number of cycles of a run of ``duration`` s; LimitError (naming ``what``) unless it is > 0 and
-    at most MAX_RUN_CYCLES."""
+    at most MAX_RUN_CYCLES (MAX_STREAMED_CYCLES for a run that records only by streaming)."""
     if not (math.isfinite(duration) and duration > 0):
         raise LimitError(f"{what}: must be a number of seconds > 0, got {duration!r}")
     n = int(round(duration / dt)) + 1
-    if n > MAX_RUN_CYCLES:
-        raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than a run records "
-                         f"({MAX_RUN_CYCLES} cycles, {MAX_RUN_CYCLES * dt:g} s); split it into shorter runs")
+    cap, how = (MAX_STREAMED_CYCLES, "a streamed run records") if streamed else (MAX_RUN_CYCLES, "a run records")
+    if n > cap:
+        raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than {how} "
+                         f"({cap} cycles, {cap * dt:g} s); split it into shorter runs")
     return n
 
 
@@ -233,7 +237,7 @@ def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep
         total = longest.duration
         source = getattr(longest, "source", None)
         what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
-    n = check_run_length(total, dt, what)
+    n = check_run_length(total, dt, what, streamed=not keep)
     for ch in channels:
         _check_profile(ch, (n - 1) * dt)
     plan = RunPlan(channels, dt, n, keep=keep)
@@ -570,12 +574,40 @@ def _check_profile(ch: Channel, until: float) -> None:
     lim = ch.limits
     if lim.position is not None:
         try:
-            check_limits(ch.profile, position=lim.position, until=until)
+            t0 = 0.0
+            while True:  # a window at a time: the check's memory does not grow with the run's length
+                span = min(until - t0, CHECK_WINDOW_S)
+                profile = ch.profile if t0 == 0.0 else _Shifted(ch.profile, t0)
+                try:
+                    check_limits(profile, position=lim.position, until=span)
+                except ProfileError as exc:
+                    raise ProfileError(re.sub(r"at t=([0-9.]+) s", lambda m, t0=t0: f"at t={float(m[1]) + t0:.3f} s",
+                                              str(exc), count=1)) from None
+                t0 += span
+                if t0 >= until:
+                    break
         except ProfileError as exc:
             origin = f" ({lim.position_source})" if lim.position_source else ""
             raise LimitError(f"axis {ch.axis.name}: {exc}{origin}; nothing moved") from None
     ch.following_since = None
     ch.last_position = None
+
+
+#: the soft-limit check of a run samples this much of the profile at a time (s)
+CHECK_WINDOW_S = 600.0
+
+
+class _Shifted:
+    """``profile`` seen from ``t0`` on (its name and file kept for the messages)."""
+
+    def __init__(self, profile: Profile, t0: float):
+        self._p, self._t0 = profile, t0
+        self.name = getattr(profile, "name", None) or profile_name(profile)
+        self.source = getattr(profile, "source", None)
+        self.duration = max(profile.duration - t0, 0.0)
+
+    def sample(self, t: np.ndarray):
+        return self._p.sample(np.asarray(t) + self._t0)
 
 
 def _left_operation(ch: Channel, k: int) -> Fault:

@@ -1,7 +1,7 @@
 """Physical effects that make a machine differ from its model; the vocabulary of `drivectl explain`.
 
 Each effect edits a :class:`~drivectl.plant_emulator.models.Design` and can be added to any plant.
-Names, parameters and conventions are the contract of ../shared/DESIGN.md (SI; force-like
+Names, parameters and conventions are the contract of docs/effects.md (SI; force-like
 parameters in the plant's effort unit):
 
 ============  =======================  ==============================================================
@@ -13,7 +13,10 @@ backlash      width                    total lost motion between screw and table
 periodic      amplitude, period        force amplitude sin(2 pi q / period + phase) on the table
                                        (phase optional, default 0)
 mass          mass                     the true total moving mass, kg
-viscous       scale                    both viscous coefficients (c+ and c-) times scale
+viscous       scale, scale_neg (opt.)  both viscous coefficients (c+ and c-) times scale; with
+                                       scale_neg, c+ times scale and c- times scale_neg
+coulomb       force_pos, force_neg     the true Coulomb friction for motion in + and in - (both >= 0),
+                                       replacing the model's fc+ and fc-
 delay         delay                    extra delay of the effort, on top of the transport delay
 offset        force                    signed constant force, + pushes towards +q
 spring        stiffness                force -stiffness q, rest point q = 0
@@ -30,7 +33,10 @@ Choices the table leaves open, made here once:
 * resonance split: the same 30 % / 70 % mass split as backlash; ``damping`` is the damping ratio
   zeta of the mode, the damper is 2 zeta sqrt(k mu);
 * stribeck on a plant with several friction-carrying bodies: the excess is shared in proportion to
-  each body's Coulomb friction (on the table when no body has any).
+  each body's Coulomb friction (on the table when no body has any);
+* coulomb on a plant with several bodies: the new level per direction is shared in the proportion
+  of the model's Coulomb friction per body (on the table when no body has any), so the total
+  Coulomb force for motion in + is force_pos and in - force_neg.
 """
 
 from __future__ import annotations
@@ -143,10 +149,21 @@ def _mass(d: Design, mass: float) -> None:
         d.coupling.damping *= ratio
 
 
-def _viscous(d: Design, scale: float) -> None:
+def _viscous(d: Design, scale: float, scale_neg: float | None = None) -> None:
+    neg = scale if scale_neg is None else scale_neg
     for b in d.bodies:
         b.c_pos *= scale
-        b.c_neg *= scale
+        b.c_neg *= neg
+
+
+def _coulomb(d: Design, force_pos: float, force_neg: float) -> None:
+    for attr, total in (("fc_pos", force_pos), ("fc_neg", force_neg)):
+        shares = [getattr(b, attr) for b in d.bodies]
+        s = sum(shares)
+        if s <= 0:
+            shares, s = [0.0] * (len(d.bodies) - 1) + [1.0], 1.0
+        for b, share in zip(d.bodies, shares, strict=True):
+            setattr(b, attr, total * share / s)
 
 
 def _delay(d: Design, delay: float) -> None:
@@ -184,7 +201,10 @@ EFFECTS: dict[str, Effect] = {
                             ParamDef("phase", "rad", optional=True)), _periodic,
                "position-periodic force on the table (lead error, runout)"),
         Effect("mass", (_positive("mass", "kg"),), _mass, "true total moving mass"),
-        Effect("viscous", (_nonneg("scale", "1"),), _viscous, "viscous coefficients times scale"),
+        Effect("viscous", (_nonneg("scale", "1"), ParamDef("scale_neg", "1", lo=0.0, optional=True)), _viscous,
+               "viscous coefficients times scale (c- times scale_neg when given)"),
+        Effect("coulomb", (_nonneg("force_pos", "effort"), _nonneg("force_neg", "effort")), _coulomb,
+               "the true Coulomb friction per direction of motion"),
         Effect("delay", (_nonneg("delay", "s"),), _delay, "extra delay of the effort"),
         Effect("offset", (ParamDef("force", "effort"),), _offset, "constant force, + towards +q"),
         Effect("spring", (_nonneg("stiffness", "effort/m"),), _spring, "force -stiffness q"),

@@ -31,8 +31,19 @@ def _run(argv: list[str]) -> int:
     return cmd_bode(p.parse_args(["bode", *argv]))
 
 
+def _paper_z(cfg):
+    """The machine with z under paper 000's PID-NFTSM and its delay-tuned settings (the embedded comment)."""
+    import dataclasses
+
+    z = dataclasses.replace(cfg.axis("z"), controller="pid-nftsm",
+                            controller_settings={"m_tilde": 0.15, "accel_filter_hz": 150.0})
+    return dataclasses.replace(cfg, axes={**cfg.axes, "z": z})
+
+
 def test_two_mass_mode_within_3_percent_sim() -> None:
-    res = measure_frf(load_config(None), "z", sim=True, seconds=10)
+    # on paper 000's PID-NFTSM loop: with mbc (the default) the top coherent lines are 2.3 dB off the
+    # model (its Kalman filter takes the excitation for a disturbance and cancels part of it)
+    res = measure_frf(_paper_z(load_config(None)), "z", sim=True, seconds=10)
     assert res.ok, res.detail
     assert res.mode is not None
     assert abs(res.mode_hz - MODE_HZ) / MODE_HZ < 0.03

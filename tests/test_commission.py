@@ -18,7 +18,7 @@ def test_config_show_and_init_round_trip(tmp_path, capsys):
     path = tmp_path / "machine.toml"
     assert main(["config", "init", str(path)]) == 0
     cfg = load_config(path)
-    assert set(cfg.axes) == {"x", "y", "z"} and cfg.axis("z").controller == "pid-nftsm"
+    assert set(cfg.axes) == {"x", "y", "z"} and cfg.axis("z").controller == "mbc"
     assert main(["config", "init", str(path)]) == 2  # no silent overwrite
     assert "exists" in capsys.readouterr().err
 

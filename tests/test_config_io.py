@@ -102,7 +102,7 @@ def test_tune_write_config_merges_the_verified_gains(tmp_path, capsys):
     tuned = tomllib.loads((tmp_path / "t.toml").read_text())["axes"]["z"]["controller_settings"]
     merged = load_config(path).axis("z").controller_settings
     assert {k: merged[k] for k in tuned} == tuned
-    assert "# The paper-scenario defaults" in path.read_text()  # the file's comments kept
+    assert "# For paper 000's PID-NFTSM set controller" in path.read_text()  # the file's comments kept
     assert len(list(tmp_path.glob("m.toml.*.bak"))) == 1
 
 

@@ -34,14 +34,33 @@ def _closed_loop(spec, profile=None, **pd):
 
 
 def test_vocabulary_is_the_design_table():
-    assert VOCABULARY == ("none", "stribeck", "backlash", "periodic", "mass", "viscous", "delay", "offset",
-                          "spring", "resonance", "saturation")
+    assert VOCABULARY == ("none", "stribeck", "backlash", "periodic", "mass", "viscous", "coulomb", "delay",
+                          "offset", "spring", "resonance", "saturation")
     expected = {
         "stribeck": ("excess_force", "velocity"), "backlash": ("width",), "periodic": ("amplitude", "period"),
-        "mass": ("mass",), "viscous": ("scale",), "delay": ("delay",), "offset": ("force",),
+        "mass": ("mass",), "viscous": ("scale",), "coulomb": ("force_pos", "force_neg"), "delay": ("delay",),
+        "offset": ("force",),
         "spring": ("stiffness",), "resonance": ("frequency", "damping"), "saturation": ("limit",),
     }
     assert {name: e.required for name, e in EFFECTS.items()} == expected
+
+
+@pytest.mark.parametrize("plant", RIGID)
+def test_direction_dependent_friction(plant):
+    """coulomb replaces fc+/fc-, viscous scale_neg scales c- alone: the steady speeds under a push say so."""
+    base = load_plant(plant)
+    c_pos, c_neg = base.params["c_pos"], base.params["c_neg"]
+    spec = base.with_effect("coulomb", force_pos=30.0, force_neg=70.0).with_effect("viscous", scale=0.8,
+                                                                                    scale_neg=1.3)
+    for push, c, fc in ((150.0, 0.8 * c_pos, 30.0), (-150.0, 1.3 * c_neg, 70.0)):
+        _, v, _ = _open_loop(spec, np.full(4000, push))
+        assert v[-1] == pytest.approx((push - np.sign(push) * fc) / c, rel=1e-6)
+    # scale alone still scales both (the existing contract)
+    d = base.with_effect("viscous", scale=2.0).design()
+    assert (d.bodies[0].c_pos, d.bodies[0].c_neg) == (2 * c_pos, 2 * c_neg)
+    # on the two-mass plant (no Coulomb in the model) the friction goes on the table
+    two = load_plant("two-mass").with_effect("coulomb", force_pos=0.2, force_neg=0.3).design()
+    assert (two.bodies[0].fc_pos, two.bodies[1].fc_pos, two.bodies[1].fc_neg) == (0.0, 0.2, 0.3)
 
 
 @pytest.mark.parametrize("plant", RIGID)

@@ -144,8 +144,8 @@ def test_json_has_exactly_the_keys(clean_traces, tmp_path, capsys):
     out = capsys.readouterr().out
     obj = json.loads(out)
     assert out.count("\n") == 1
-    assert set(obj) == {"effect", "params", "gap_before", "gap_after", "gap_metric"}
-    assert obj["effect"] == "none" and math.isfinite(obj["gap_before"])
+    assert set(obj) == {"effect", "params", "gap_before", "gap_after", "gap_metric", "effects"}
+    assert obj["effect"] == "none" and math.isfinite(obj["gap_before"]) and obj["effects"] == []
     assert load_plant(tmp_path / "o" / "x.explain.plant.toml").effects == ()
 
 
@@ -185,3 +185,84 @@ def test_gap_of_the_true_plant_is_the_noise_floor(clean_traces):
     prep = prepare(tr, load_plant("rigid-x"))
     g = gaps_of(prep, [load_plant("rigid-x")])[0]
     assert 0 < g < 20e-6
+
+
+# --------------------------------------------------------------------------------------------------
+# Issue 17: several effects, the two-mass axis, robust windows, real conventions, the measured records
+# --------------------------------------------------------------------------------------------------
+
+
+def test_two_effects_named_in_order_with_json(tmp_path, capsys):
+    """The issue's miss: viscous x0.47 + a 10 N periodic force was answered `none` with a 330 um gap."""
+    import argparse
+
+    case = _case("viscous", {"scale": 0.47}, "rigid-x", "pid", {}, PROFILE, seed=21)
+    case.more = [("periodic", {"amplitude": 10.0, "period": 0.006, "phase": 0.5})]
+    tr, _ = make_trace(case)
+    path = tr.write(tmp_path / "pair.csv")
+    parser = argparse.ArgumentParser()
+    add_explain_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["explain", str(path), "--plant", "rigid-x", "--json", "--out", str(tmp_path), "--quiet"])
+    assert cmd_explain(args) == 0
+    obj = json.loads(capsys.readouterr().out)
+    named = [e["effect"] for e in obj["effects"]]
+    assert set(named) >= {"viscous", "periodic"}, obj
+    assert obj["effect"] == named[0] and obj["params"] == obj["effects"][0]["params"]
+    gaps = [e["gap_after"] for e in obj["effects"]]
+    assert gaps == sorted(gaps, reverse=True) and gaps[-1] == pytest.approx(obj["gap_after"])
+    viscous = next(e for e in obj["effects"] if e["effect"] == "viscous")
+    assert viscous["params"]["scale"] == pytest.approx(0.47, rel=0.25)
+    # the augmented plant carries both, and the report ends with the remainder against the floor
+    spec = load_plant(tmp_path / "pair.explain.plant.toml")
+    assert {e[0] for e in spec.effects} >= {"viscous", "periodic"}
+    last = (tmp_path / "pair.explain.report.txt").read_text().strip().splitlines()[-1]
+    assert "unexplained" in last and "times the floor" in last
+
+
+def _z_case(effect, params, seed=31):
+    prof = {"start": 0.0, "distance": 0.05, "speeds": [0.03, 0.08], "amax": 0.6, "jmax": 20.0, "dwell": 0.3,
+            "repeats": 2}
+    return _case(effect, params, "two-mass", "pid-nftsm", {"m_tilde": 0.15, "accel_filter_hz": 150.0}, prof,
+                 seed=seed, noise=0.01)
+
+
+def test_two_mass_axis_named_and_split_effects_refused(tmp_path):
+    """z (two-mass, V): an effect is named; backlash and resonance are refused with one line each."""
+    tr, truth = make_trace(_z_case("offset", {"force": 0.15}))
+    res = explain(tr, load_plant("two-mass"), out_dir=tmp_path, stem="z")
+    assert res.effect == "offset", res.report
+    assert res.params["force"] == pytest.approx(0.15, rel=0.25)
+    for name in ("backlash", "resonance"):
+        line = next(x for x in res.report.splitlines() if x.strip().startswith(f"{name}:"))
+        assert "not tried" in line and "one-mass" in line
+
+
+def test_clean_circle_without_velocity_column_is_none():
+    """Issue 17: every clean y circle without the velocity column was called `mass` (the circle's start:
+    a velocity step the local cubic cannot follow)."""
+    case = _case("none", {}, "rigid-y", "asmc", {"law": 14}, {"library": "circle"}, seed=5, noise=1.0)
+    case.vel_column = False
+    tr, _ = make_trace(case)
+    assert "vel_m_s" not in tr.columns
+    res = explain(tr, load_plant("rigid-y"))
+    assert res.effect == "none" and res.effects == [], res.report
+    assert "kink" in res.report or res.evidence["windows"] > 60
+
+
+def test_transport_delay_cycles_from_the_trace():
+    """A rig that applies the effort in the cycle it computes it (`# transport_delay_cycles: 0`)."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Limits, run
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.profiles.sequence import back_and_forth
+
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), transport_delay=False, resolution=76.29e-9, force_noise=1.0, seed=3, name="x")
+    ctrl = make_controller("pid", 0.001, {}, plant=spec, axis="x")
+    tr = run(axis, ctrl, back_and_forth(**PROFILE), limits=Limits(following_error=0.02)).trace
+    zero = Trace(dict(tr.columns), {**tr.meta, "transport_delay_cycles": "0"})
+    assert explain(zero, spec).effect == "none"
+    with pytest.raises(ExplainError, match="transport_delay_cycles"):
+        prepare(Trace(dict(tr.columns), {**tr.meta, "transport_delay_cycles": "2"}), spec, "x.csv")
+    with pytest.raises(ExplainError, match="encoder_m_per_count"):
+        prepare(Trace(dict(tr.columns), {**tr.meta, "encoder_m_per_count": "-1"}), spec, "x.csv")

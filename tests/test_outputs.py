@@ -141,3 +141,18 @@ def test_identify_out_naming_a_file_is_refused_before_the_runs(tmp_path, capsys)
     f = tmp_path / "x.csv"
     f.write_text("not a folder")
     _refused(capsys, ["identify", "--axis", "x", "--sim", "--out", str(f)], "--out", "not a folder")
+
+
+def test_a_profile_path_that_is_not_utf8_is_recorded_escaped(tmp_path, capsys):
+    """The trace records the profile's path as text: a name that is not UTF-8 is written escaped, not a
+    traceback after the run."""
+    profile = Path(os.fsdecode(bytes(tmp_path) + b"/move-\xff.toml"))
+    try:
+        profile.write_text('kind = "dwell"\nposition = 0.0\nduration = 0.02\n')
+    except (OSError, UnicodeEncodeError):
+        pytest.skip("this file system does not take non-UTF-8 names")
+    out = tmp_path / "out"
+    rc = main([*SIM, "--profile", str(profile), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    tr = Trace.read(out / "x.csv")
+    assert "move-\\udcff.toml" in tr.meta["profile"]

@@ -101,6 +101,22 @@ def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
         lo, hi = x.limits.position
         assert j.done and x.state == "servo"  # stopped at the limit, no fault
         assert hi - 0.0011 < x.position < hi
+        held = x.jog(0.01)  # the button still held at the limit: nothing moves, nothing raises
+        assert held.done and "at the soft limit already" in held.detail
+        x.jog(-0.01)  # away from it is fine
+        m.advance(0.1)
+        assert x.velocity < 0
+
+
+def test_a_jog_renewed_while_its_dead_man_stop_is_under_way_moves_on(machine):
+    x = machine.axes["x"]
+    x.enable()
+    j = x.jog(0.02)
+    machine.advance(0.215)  # 0.2 s: the dead man began the stop (about 40 ms long); the axis decelerates
+    assert 0 < x.velocity < 0.02 and not j.done
+    assert x.jog(0.02) is j
+    machine.advance(0.15)
+    assert x.velocity == pytest.approx(0.02, rel=0.05)
 
 
 def test_moves_outside_the_limits_are_refused_before_anything_moves(machine):
@@ -426,3 +442,13 @@ def test_the_last_seconds_before_any_fault_are_on_disk_without_asking(tmp_path):
     assert len(tr) == 250 and tr.time[-1] == 0.0 and tr.pos[-1] > 0.0
     assert "emcy" in tr.meta["capture_detail"] or "drive fault" in tr.meta["capture_detail"]
     assert {"following_error_m", "torque_actual", "statusword"} <= set(tr.columns)
+
+
+def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, capsys):
+    m = drivectl.connect(config(), axes=["x"], fault_dir=tmp_path)
+    with m:
+        m.axes["x"].enable()
+        m.loop.axes["x"].ch.axis.disable = lambda: None  # the command never reaches the drive
+    assert m.unconfirmed == ["x"]
+    err = capsys.readouterr().err
+    assert "axis x: the drive last reported Operation Enabled after the disable: it may still be powered" in err

@@ -79,3 +79,31 @@ def test_references_sampled_chunk_by_chunk_equal_the_profile_and_keep_false_stre
     assert np.array_equal(traces[0].ref, ref)
     assert traces[1].meta["recording"] == "streamed"
     assert np.allclose(traces[1].ref, ref, rtol=0, atol=1e-9) and np.allclose(traces[1].pos, traces[0].pos, atol=1e-9)
+
+
+def test_a_streamed_run_has_no_one_hour_cap_and_its_limit_check_is_windowed():
+    import numpy as np
+    import pytest
+    from helpers import PdController, SineProfile
+
+    from drivectl.controllers.servo import REF_CHUNK, Channel, LimitError, Limits, plan_run
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+
+    def channel(profile):
+        return Channel(SimAxis(load_plant("rigid-x").build(0.001)), PdController(0.001), profile,
+                       Limits(position=(-0.1, 0.1)))
+
+    two_hours = SineProfile(0.01, 0.5, 7200.0)
+    plan = plan_run([channel(two_hours)], keep=False)  # planned: checked whole, sampled one chunk
+    assert plan.cycles == 7_200_001 and len(plan.refs[0][0]) == REF_CHUNK
+    with pytest.raises(LimitError, match="more than a run records .3600000 cycles"):
+        plan_run([channel(two_hours)], keep=True)  # held in memory: capped
+
+    class LeavesAt700(SineProfile):
+        def sample(self, t):
+            p, v, a, j = super().sample(t)
+            return np.where(np.asarray(t) >= 700.0, 0.5, p), v, a, j
+
+    with pytest.raises(LimitError, match=r"position 0.5000 m at t=700.000 s outside soft limits"):
+        plan_run([channel(LeavesAt700(0.01, 0.5, 1000.0))], keep=False)  # in the second window

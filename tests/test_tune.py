@@ -21,6 +21,14 @@ def _embedded_config(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("DRIVECTL_CONFIG", raising=False)
 
 
+def _paper_z():
+    """The machine with z under paper 000's PID-NFTSM and its delay-tuned settings (the embedded comment)."""
+    cfg = load_config()
+    z = dataclasses.replace(cfg.axis("z"), controller="pid-nftsm",
+                            controller_settings={"m_tilde": 0.15, "accel_filter_hz": 150.0})
+    return dataclasses.replace(cfg, axes={**cfg.axes, "z": z})
+
+
 def _in_declared_range(controller: str, gains: dict[str, float]) -> None:
     meta = {f.name: f.metadata for f in dataclasses.fields(controller_class(controller).SettingsClass)}
     for k, v in gains.items():
@@ -50,7 +58,8 @@ def _check_search(res, n: int) -> None:
 
 def test_search_x_pool_and_verify_on_sim() -> None:
     """rigid-x (Coulomb friction): candidates in a process pool; verification on SimAxis."""
-    res = tune(load_config(), "x", candidates=16, seconds=1.0, seed=1, jobs=2, verify=True, sim=True)
+    res = tune(load_config(), "x", controller="asmc", candidates=16, seconds=1.0, seed=1, jobs=2, verify=True, sim=True,
+               corners=0)
     _check_search(res, 16)
     assert "pool" in res.method
     # the pool's ranking figure is the same SimAxis run as the prediction
@@ -64,7 +73,7 @@ def test_search_x_pool_and_verify_on_sim() -> None:
 
 def test_search_z_batch() -> None:
     """two-mass is linear: the whole sample runs as one numpy batch, ranked like SimAxis."""
-    res = tune(load_config(), "z", candidates=16, seconds=1.0, seed=0, verify=False)
+    res = tune(_paper_z(), "z", candidates=16, seconds=1.0, seed=0, verify=False, corners=0)
     _check_search(res, 16)
     assert "batch" in res.method and res.measured is None
     # the batch's figure for the best agrees with the servo loop on SimAxis (bring-up cycles shift the
@@ -82,8 +91,8 @@ def _run_cli(argv: list[str]) -> int:
 
 def test_cli_json_and_toml(tmp_path, capsys) -> None:
     out = tmp_path / "gains.toml"
-    rc = _run_cli(["--axis", "z", "--candidates", "8", "--seconds", "0.5", "--jobs", "1", "--sim", "--json",
-                   "--out", str(out)])
+    rc = _run_cli(["--axis", "z", "--controller", "pid-nftsm", "--corners", "0", "--candidates", "8", "--seconds",
+                   "0.5", "--jobs", "1", "--sim", "--json", "--out", str(out)])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     obj = json.loads(cap.out)  # exactly one object
@@ -99,8 +108,8 @@ def test_cli_json_and_toml(tmp_path, capsys) -> None:
 
 
 def test_cli_no_verify_reports(tmp_path, capsys) -> None:
-    rc = _run_cli(["--axis", "z", "--candidates", "4", "--seconds", "0.3", "--no-verify",
-                   "--out", str(tmp_path / "t.toml")])
+    rc = _run_cli(["--axis", "z", "--controller", "pid-nftsm", "--corners", "0", "--candidates", "4", "--seconds",
+                   "0.3", "--no-verify", "--out", str(tmp_path / "t.toml")])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     assert "not verified" in cap.out and "cost: J = max|e|" in cap.out
@@ -108,14 +117,35 @@ def test_cli_no_verify_reports(tmp_path, capsys) -> None:
 
 def test_verify_on_emulated_bus_matches_prediction() -> None:
     """The default verification: the emulated CiA 402 drive on the virtual bus, whose plant is the model."""
-    res = tune(load_config(), "z", candidates=4, seconds=0.5, verify=True)
+    res = tune(_paper_z(), "z", candidates=4, seconds=0.5, verify=True, corners=0)
     assert res.measured is not None and res.measured.ok
     assert "virtual" in res.verified_on
     assert res.measured.cost == pytest.approx(res.predicted.cost, rel=1e-6)
 
 
+def test_robust_search_rejects_candidates_unstable_on_a_corner() -> None:
+    """Scored on the model and 8 of its +-10 % corners: PID-NFTSM gains that only the nominal model
+    carries are rejected, and the best is never worse than the start on the same worst-case score."""
+    res = tune(_paper_z(), "z", candidates=8, seconds=1.0, seed=0, verify=False, corners=8)
+    assert res.corners == 8 and res.unstable >= 1
+    assert np.isinf(res.costs).sum() >= res.unstable
+    assert float(np.min(res.costs)) <= res.costs[0]
+    from drivectl.tools.tune import report
+
+    assert "8 +-10 % corners" in report(res)
+
+
+def test_robust_search_of_the_model_based_controller() -> None:
+    """mbc has a linear loop: candidates are checked by the spectral radius on every corner first."""
+    res = tune(load_config(), "z", controller="mbc", candidates=4, seconds=0.5, seed=0, jobs=1, verify=False,
+               corners=4)
+    assert "pool" not in res.method and "batch" not in res.method
+    assert math.isfinite(res.costs[0])  # the default design holds on the corners
+    assert float(np.min(res.costs)) <= res.costs[0]
+
+
 @pytest.mark.parametrize("argv", [["--controller", "nope"], ["--axis", "w"], ["--candidates", "0"],
-                                  ["--seconds", "-1"]])
+                                  ["--seconds", "-1"], ["--corners", "-1"], ["--spread", "1.5"]])
 def test_bad_input_exit_2_one_line(tmp_path, capsys, argv) -> None:
     rc = _run_cli([*argv, "--out", str(tmp_path / "t.toml")])
     cap = capsys.readouterr()

@@ -222,8 +222,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                                  "drive stops by itself per 0x6007), or inject it on the drive side: "
                                  "drivectl emulate --fault")
     profiles = {name: axis_profile(cfg, name, args.profile) for name in names}
-    if args.duration is not None:  # before a bus opens: the run is sampled and recorded whole in memory
-        check_run_length(args.duration, cfg.cycle_s, "--duration")
+    if args.duration is not None:  # before a bus opens (the cap of the run's kind is checked below)
+        check_run_length(args.duration, cfg.cycle_s, "--duration", streamed=True)
     specs = plant_specs(cfg, names, args.plant, effects)  # every input checked before a bus opens
     models = model_specs(cfg, names, args.model, args.plant, plants=specs)
     controllers = {}
@@ -248,14 +248,15 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     checks.check_bus_log(args.bus_log)
     # the outputs last (this creates --out): a folder we can write, with room for what the run records
     if args.duration is not None:
-        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration")
+        cycles = check_run_length(args.duration, cfg.cycle_s, "--duration", streamed=plan is None)
     else:  # as the run will name it
         from drivectl.profiles.base import profile_name
 
         longest = max(profiles.values(), key=lambda p: p.duration)
         source = getattr(longest, "source", None)
         cycles = check_run_length(longest.duration, cfg.cycle_s,
-                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration")
+                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration",
+                                  streamed=plan is None)
     checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
     if plan is not None:  # the repetitions (tools/learn.py)
         return run_repeated(args, request, plan, cfg=cfg, names=names, profiles=profiles, specs=specs,

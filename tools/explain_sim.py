@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -43,19 +44,23 @@ class Windows:
 
 
 def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float, length: int,
-                 history: int = 16, starts: np.ndarray | None = None, side_threshold: float = 0.0) -> Windows:
+                 history: int = 16, starts: np.ndarray | None = None, side_threshold: float = 0.0,
+                 transport: int = 1) -> Windows:
     """Non-overlapping windows of ``length`` steps covering the trace (or the given ``starts``).
 
     ``side_threshold``: an effort at least this large decides on which side of a dead zone the screw
     rests; below it (a dwell holding ~0) the screw stays where the last such effort pushed it.
+    ``transport``: cycles between the row an effort is logged on and the cycle it acts in (1 in
+    CiA 402 cyclic synchronous torque; 0 on a rig that applies it in the cycle it computes it).
     """
     n = len(pos)
     if starts is None:
         starts = np.arange(0, n - length, length)
     starts = np.asarray(starts, dtype=int)
-    # transport rule: the effort on row k acts from t(k+1) to t(k+2), i.e. step j (t(j) -> t(j+1))
-    # is driven by effort[j - 1]; before the first row nothing acted
-    applied_rows = np.concatenate(([0.0], effort[:-1]))
+    # transport rule: the effort on row k acts from t(k+d) to t(k+d+1), i.e. step j (t(j) -> t(j+1))
+    # is driven by effort[j - d]; before the first row nothing acted
+    applied_rows = (np.asarray(effort, dtype=float) if transport == 0
+                    else np.concatenate((np.zeros(transport), effort[:-transport])))
     padded = np.concatenate((np.zeros(history), applied_rows))
     idx = starts[:, None] + np.arange(-history, length)[None, :] + history
     applied = padded[idx]
@@ -173,9 +178,9 @@ class BatchSim:
         return self._run_one(win)[0]
 
     def run_with_velocity(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
-        """Simulated table position and velocity after each step (rigid plants): two (W, C, L)."""
+        """Simulated table position and velocity after each step: two (W, C, L)."""
         if self.two:
-            raise ValueError("BatchSim: velocities only for one-body plants")
+            return self._run_two(win, None, with_velocity=True)
         return self._run_one(win)
 
     def _inputs(self, win: Windows, j: int, i: int) -> np.ndarray:
@@ -248,7 +253,8 @@ class BatchSim:
             out_v[:, :, j] = v
         return out, out_v
 
-    def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None,
+                 with_velocity: bool = False) -> Any:
         W, C, L = len(win.start), len(self.plants), win.length
         init = self._initial(win)
         if internal is not None:
@@ -256,6 +262,7 @@ class BatchSim:
             init[1] = init[3] + internal[1]
         s = np.stack(init, axis=-1)  # (W, C, 4)
         out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L)) if with_velocity else None
         h = self.h
         cidx = np.broadcast_to(np.arange(C)[None, :], (W, C))
         gap = self.gap[None, :]
@@ -309,7 +316,9 @@ class BatchSim:
                     new[..., vi] = np.where(np.abs(vnew) < 1e-15, 0.0, vnew)
                 s = new
             out[:, :, j] = s[..., 2]
-        return out
+            if out_v is not None:
+                out_v[:, :, j] = s[..., 3]
+        return (out, out_v) if with_velocity else out
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:
@@ -321,12 +330,15 @@ def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) ->
 
 
 def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.ndarray,
-                   rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                   rows: np.ndarray, table_vel: np.ndarray | None = None,
+                   times: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Relative state (x0 - x1, v0 - v1) of a linearly coupled two-body plant at ``rows``: (len(rows), C).
 
     Body 0 (the motor side of ``resonance``) carries no friction, so its motion relative to the
     measured table obeys a linear equation driven by the recorded effort and the measured table
-    acceleration: m0 d'' = f - k d - c d' - m0 a1. Filtering the whole trace through it (exact
+    acceleration: m0 d'' = f - k d - c d' - m0 a1 (with a viscous b0 on body 0, as on ``two-mass``:
+    - b0 (d' + v1), the table velocity measured; the model's own time disturbance on body 0 added
+    to f). Filtering the whole trace through it (exact
     ZOH discretisation, from rest at row 0) reconstructs the mode's state at every window start:
     a lightly damped mode rings on from one window into the next, which a start "at rest relative
     to each other" would miss. ``applied[j]`` and ``table_acc[j]`` act during step j.
@@ -341,11 +353,17 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
     for c, p in enumerate(plants):
         d = p.design
         m0 = d.bodies[0].mass
+        b0 = d.bodies[0].c_pos
         k, cc = d.coupling.stiffness, d.coupling.damping
-        ac = np.array([[0.0, 1.0], [-k / m0, -cc / m0]])
+        ac = np.array([[0.0, 1.0], [-k / m0, -(cc + b0) / m0]])
         bc = np.array([[0.0], [1.0]])
         A, B = (np.asarray(x) for x in _discretise(ac, bc, p.dt))
-        u = applied / m0 - table_acc
+        f = np.asarray(applied, dtype=float)
+        if b0 and table_vel is not None:
+            f = f - b0 * table_vel
+        if d.disturbance_amplitude and times is not None:
+            f = f + d.disturbance_amplitude * np.sin(2 * math.pi * d.disturbance_frequency * (times + 0.5 * p.dt))
+        u = f / m0 - table_acc
         for which, target in ((0, out_d), (1, out_v)):
             cm = np.zeros((1, 2))
             cm[0, which] = 1.0

@@ -140,17 +140,20 @@ class Trace:
         except OSError as exc:
             raise TraceError(f"{path}: cannot read: {exc.strerror or exc}") from None
         try:
-            size = os.fstat(raw.fileno()).st_size
+            lines = 0  # an upper bound of the rows, for the budget and one allocation (plain files)
             if raw.peek(2)[:2] == b"\x1f\x8b":
                 import gzip
 
                 binary: Any = gzip.GzipFile(fileobj=raw)
-                size = 0  # unknown until read
             else:
                 binary = raw
+                while block := raw.read(1 << 22):
+                    lines += block.count(b"\n")
+                lines += 1
+                raw.seek(0)
             text = io.TextIOWrapper(binary, encoding="utf-8-sig", newline=None)
             try:
-                return cls._from_lines(text, str(path), size_hint=size, keep=columns)
+                return cls._from_lines(text, str(path), max_rows=lines, keep=columns)
             except (OSError, EOFError, UnicodeDecodeError) as exc:
                 raise TraceError(f"{path}: cannot read: {exc}") from None
         finally:
@@ -161,13 +164,13 @@ class Trace:
         return cls._from_lines(io.StringIO(text.removeprefix("\ufeff")), source)
 
     @classmethod
-    def _from_lines(cls, lines: Iterator[str] | io.TextIOBase, source: str, size_hint: int = 0,
+    def _from_lines(cls, lines: Iterator[str] | io.TextIOBase, source: str, max_rows: int = 0,
                     keep: Sequence[str] | None = None) -> Trace:
+        """Parse a trace from its lines; ``max_rows`` (when known: the file's line count) sizes the one
+        allocation of the columns and checks the memory budget before any row is parsed."""
         meta: dict[str, str] = {}
         header_line = None
-        consumed = 0
         for line in lines:
-            consumed += len(line)
             if line.startswith("#") or not line.strip():
                 _meta_line(line, meta)
                 continue
@@ -189,7 +192,18 @@ class Trace:
         wanted = [j for j, n in enumerate(names) if keep is None or n in keep or n in REQUIRED]
         streamed = meta.get("recording") == STREAMED
         budget = max_read_bytes()
-        parts: list[list[np.ndarray]] = [[] for _ in wanted]
+        width = len(wanted)
+
+        def over_budget(rows: int) -> TraceError:
+            need = rows * width * 8
+            return TraceError(f"{source}: {rows} rows x {width} columns need {need / 1e6:.0f} MB in memory, more "
+                              f"than readers take ({budget / 1e6:.0f} MB; raise {BUDGET_ENV} or cut the trace "
+                              "into parts)")
+
+        if max_rows and max_rows * width * 8 > budget:
+            raise over_budget(max_rows)
+        # the columns, one row each of a single block: sized once from the line count, or grown by doubling
+        store = np.empty((width, max_rows or CHUNK_ROWS))
         trailer: dict[str, str] = {}
         complete = False
         rows_done = 0
@@ -197,31 +211,27 @@ class Trace:
         chunk: list[str] = []
 
         def flush_chunk() -> None:
-            nonlocal rows_done
+            nonlocal rows_done, store
             if not chunk:
                 return
             try:
-                data = np.loadtxt(chunk, delimiter=",", ndmin=2, usecols=None)
+                data = np.loadtxt(chunk, delimiter=",", ndmin=2)
             except ValueError as exc:
                 raise _garbled(source, names, chunk, exc, rows_done) from None
             if data.shape[1] != len(names):
                 raise TraceError(f"{source}: rows have {data.shape[1]} fields, the column row {len(names)} "
                                  f"({','.join(names)})")
-            for slot, j in enumerate(wanted):
-                parts[slot].append(data[:, j].copy())
-            rows_done += len(data)
-            need = rows_done * len(wanted) * 8
-            if size_hint and rows_done == len(data):  # first chunk: estimate the whole file from its size
-                per_row = max(1.0, consumed_data / max(1, rows_done))
-                need = int(size_hint / per_row) * len(wanted) * 8
-            if need > budget:
-                est = need // (len(wanted) * 8)
-                raise TraceError(f"{source}: {est} rows x {len(wanted)} columns need {need / 1e6:.0f} MB in memory, "
-                                 f"more than readers take ({budget / 1e6:.0f} MB; raise {BUDGET_ENV} or cut the "
-                                 "trace into parts)")
+            end = rows_done + len(data)
+            if end > store.shape[1]:
+                if end * width * 8 > budget:
+                    raise over_budget(end)
+                grown = np.empty((width, min(max(end, 2 * store.shape[1]), budget // (width * 8))))
+                grown[:, :rows_done] = store[:, :rows_done]
+                store = grown
+            store[:, rows_done:end] = data[:, wanted].T
+            rows_done = end
             chunk.clear()
 
-        consumed_data = 0
         for line in lines:
             if held is not None:
                 chunk.append(held)
@@ -238,7 +248,6 @@ class Trace:
                 continue
             if complete or trailer:
                 raise TraceError(f"{source}: data row after the trailer (data row {rows_done + len(chunk) + 1})")
-            consumed_data += len(line)
             held = line
         if held is not None:
             if held.endswith("\n") or not streamed or complete:
@@ -254,10 +263,9 @@ class Trace:
                 meta.setdefault("stop", "incomplete")
                 meta.setdefault("stop_detail", "the recording ended without its trailer (the writer was killed "
                                 "or is still running): rows up to its last flush")
-        columns: dict[str, np.ndarray] = {}
-        for slot, j in enumerate(wanted):
-            columns[names[j]] = np.concatenate(parts[slot]) if len(parts[slot]) > 1 else parts[slot][0]
-            parts[slot] = []
+        if rows_done < store.shape[1] // 2 and rows_done > CHUNK_ROWS:  # mostly unused: give it back
+            store = store[:, :rows_done].copy()
+        columns = {names[j]: store[slot, :rows_done] for slot, j in enumerate(wanted)}
         for name in REQUIRED:
             bad = ~np.isfinite(columns[name])
             if bad.any():
@@ -338,7 +346,7 @@ def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError, of
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` so that the file is either the old one or the whole new one."""
-    atomic_write_bytes(path, text.encode())
+    atomic_write_bytes(path, text.encode("utf-8", errors="backslashreplace"))  # a non-UTF-8 path in metadata
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

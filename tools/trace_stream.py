@@ -16,6 +16,8 @@ API (for the loop that records; :mod:`drivectl.controllers.servo` or the residen
     w.start()                       # opens the .partial file (O_EXCL, mode 0666 & ~umask) and the thread
     for k in ...:                   # the per-cycle path:
         w.append(t, ref, pos, u, v) #   one row into a preallocated numpy block: no I/O, no allocation
+    w.error                         # None, or why writing stopped (disk full): cheap to poll per cycle
+    w.flush()                       # not in the cycle: wait until every row so far is on disk (tests, phases)
     path = w.close({"stop": "completed", "cycles": "2501"})   # trailer, fsync, rename; -> the final path
 
 Threading: ``append`` is called from ONE thread (the loop). A daemon thread owned by the writer wakes
@@ -230,7 +232,7 @@ class TraceWriter:
             raise TraceWriteError(f"{self.folder}: no free name for a trace of axis {self.axis}")
         self.path, self.partial = final, partial
         _OPEN_PARTIALS.add(partial.name)
-        self._file = os.fdopen(fd, "w", encoding="utf-8", newline="\n")
+        self._file = os.fdopen(fd, "w", encoding="utf-8", errors="backslashreplace", newline="\n")
         head = [MAGIC, *(f"# {k}: {v}" for k, v in self.meta.items()), f"# recording: {STREAMED}",
                 ",".join(self.columns)]
         try:

@@ -76,6 +76,7 @@ TUNED_GAINS: dict[str, tuple[str, ...]] = {
     "pid-nftsm": ("m_tilde", "accel_filter_hz", "kp", "rho1"),
     "smc": ("m_tilde", "c"),
     "vprl": ("m_tilde", "c"),
+    "mbc": ("bandwidth_hz", "observer_hz"),
 }
 
 COST_TEXT = ("J = max|e| [um] + w * du_rms / (rated/1000) [um], w = {w:g} um per per mille of rated effort; "
@@ -119,6 +120,9 @@ class TuneResult:
     measured: Metrics | None = None
     verified_on: str = ""
     fixed: list[str] = field(default_factory=list)
+    corners: int = 0  # perturbed models scored beside the nominal one
+    spread: float = 0.0  # their relative perturbation
+    unstable: int = 0  # candidates rejected as unstable on some corner
     model_differs: bool = False  # the axis's model is not its plant (the verification then shows the mismatch)
 
     def to_json(self) -> dict[str, Any]:
@@ -149,6 +153,8 @@ class _Job:
     base: dict[str, Any]
     duration: float
     weight: float
+    #: the plant the run plays when it is not the model (a perturbed corner, controllers/robust.py)
+    plant: Any = None
 
 
 def _profile(job: _Job) -> Any:
@@ -173,14 +179,37 @@ def simulate(job: _Job, gains: Mapping[str, float], profile: Any = None) -> Metr
         ctrl = make_controller(job.controller, cfg.cycle_s, {**job.base, **gains}, plant=spec, axis=name)
     except SettingsError as exc:  # a cross-field rule the bounds missed: not a usable candidate
         return Metrics(math.inf, math.inf, math.inf, ok=False, detail=str(exc))
-    with open_machine(cfg, [name], sim=True, plant=axis_model(cfg, name),
-                      start={name: profile.start_position}) as machine:
+    if job.plant is not None:
+        machine = _corner_machine(cfg, name, job.plant, profile.start_position)
+    else:
+        machine = open_machine(cfg, [name], sim=True, plant=axis_model(cfg, name),
+                               start={name: profile.start_position})
+    with machine:
         try:
             with np.errstate(all="ignore"):
                 res = run(machine.axes[name], ctrl, profile, duration=job.duration, limits=ac.limits)
         except (OverflowError, FloatingPointError, ValueError) as exc:  # a diverging candidate
             return Metrics(math.inf, math.inf, math.inf, ok=False, detail=str(exc))
-    return _metrics_of(res, ac.rated_effort, job.weight, effort_roughness, tracking_error)
+    metrics = _metrics_of(res, ac.rated_effort, job.weight, effort_roughness, tracking_error)
+    from drivectl.controllers.robust import settles
+
+    tr = res.trace
+    if metrics.ok and not settles(tr.ref - tr.pos, np.diff(tr.ref, prepend=tr.ref[:1])):
+        return Metrics(metrics.max_um, metrics.du_rms, math.inf, ok=False, clipped=metrics.clipped,
+                       detail="the error does not settle (unstable or limit-cycling)")
+    return metrics
+
+
+def _corner_machine(cfg: MachineConfig, name: str, spec: Any, start: float) -> Any:
+    """SimAxis playing ``spec`` (a perturbed model), quantised as open_machine(sim=True) quantises."""
+    from drivectl.driver.units import EffortScale
+    from drivectl.plant_emulator.sim_axis import SimAxis
+    from drivectl.tools.machine import Machine
+
+    ac = cfg.axis(name)
+    axis = SimAxis(spec.build(cfg.cycle_s), name=name, resolution=ac.encoder_m_per_count,
+                   effort_scale=EffortScale(ac.rated_effort), initial_position=start)
+    return Machine({name: axis}, {name: spec}, "sim (SimAxis, a perturbed model)")
 
 
 def _metrics_of(res: Any, rated: float, weight: float, roughness: Callable, tracking: Callable) -> Metrics:
@@ -263,7 +292,7 @@ def _batch_costs(job: _Job, gains: list[dict[str, float]]) -> np.ndarray:
     cfg, name = job.cfg, job.axis
     ac = cfg.axis(name)
     spec = model_specs(cfg, [name])[name]
-    plant = spec.build(cfg.cycle_s, substeps=1)
+    plant = (job.plant if job.plant is not None else spec).build(cfg.cycle_s, substeps=1)
     keys = list(gains[0])
     arrays = {k: np.array([g[k] for g in gains], dtype=float) for k in keys}
     ctrl = make_controller(job.controller, cfg.cycle_s, {**job.base, **arrays}, plant=spec, axis=name)
@@ -378,12 +407,20 @@ def tune(
     verify: bool = True,
     sim: bool = False,
     progress: bool = False,
+    corners: int | None = None,
+    spread: float = 0.10,
 ) -> TuneResult:
     """Search ``candidates`` gain sets of ``controller`` (default the axis's) on the axis's model and
     return the best; with ``verify`` run it once on the axis (``sim``: SimAxis, else the configured bus).
 
     ``seconds`` shortens the run (default the profile's duration); ``jobs`` worker processes for
     nonlinear plants (default ``os.cpu_count()``; 1 = in this process).
+
+    Robust: every candidate is scored on the model and on its perturbed corners (controllers/robust.py:
+    every +-``spread`` corner of the parameters that matter, or a seeded ``corners`` of them; 0 = the
+    model alone), its cost the worst of them; a candidate unstable on any is rejected -- for a controller
+    with a linear loop on a linear model by the spectral radius of the closed loop (before any run), else
+    by the simulation (leaving the limits, or an error that does not settle).
     """
     from drivectl.controllers.registry import controller_class
 
@@ -398,6 +435,10 @@ def tune(
         raise TuneError(f"tune: seconds: must be > 0, got {seconds}")
     if not (weight >= 0 and math.isfinite(weight)):
         raise TuneError(f"tune: weight: must be a finite number >= 0, got {weight}")
+    if corners is not None and corners < 0:
+        raise TuneError(f"tune: corners: must be >= 0, got {corners}")
+    if not (math.isfinite(spread) and 0 < spread < 1):
+        raise TuneError(f"tune: spread: must be in (0, 1), got {spread}")
     jobs = max(1, jobs or os.cpu_count() or 1)
 
     base, start, full = starting_gains(cfg, axis_name, name)
@@ -407,25 +448,36 @@ def tune(
     profile = axis_profile(cfg, axis_name)
     duration = float(seconds) if seconds is not None else float(profile.duration)
     job = _Job(cfg, axis_name, name, base, duration, weight)
-    use_batch = _batch_ok(cfg, axis_name)
+    # the batch needs array-valued settings (plant_emulator/batch.py); a design-time controller has none
+    use_batch = getattr(controller_class(name), "batch_settings", True) and _batch_ok(cfg, axis_name)
+    from drivectl.controllers.robust import corners as corner_specs
+    from drivectl.tools.machine import model_specs
+
+    model = model_specs(cfg, [axis_name])[axis_name]
+    perturbed = [] if corners == 0 else corner_specs(model, spread, corners)
+    jobs_set = [job] + [dataclasses.replace(job, plant=c) for c in perturbed]
 
     t0 = time.perf_counter()
     n_refine = int(round(candidates * REFINE_SHARE)) if candidates >= 8 and bounds else 0
     first = [dict(start)] + _sample(bounds, candidates - 1 - n_refine, seed)
     first = [dict(start) | g for g in first]  # fixed gains keep their start value
-    bar = _bar(candidates, progress)
+    bar = _bar(candidates * len(jobs_set), progress)
     pool = None
+    unstable = 0
     try:
         if not use_batch and jobs > 1 and candidates > 1:
             pool = ProcessPoolExecutor(max_workers=jobs)
-        costs = _evaluate(job, first, use_batch, pool, jobs, bar)
+        costs, bad = _evaluate_robust(jobs_set, model, first, use_batch, pool, jobs, bar)
+        unstable += bad
         pts = list(first)
         if n_refine:
             order = [i for i in np.argsort(costs, kind="stable") if math.isfinite(costs[i])][:REFINE_TOP]
             centres = [pts[i] for i in order] or [dict(start)]
             more = [dict(start) | g for g in _refine(bounds, centres, n_refine, seed)]
             if more:
-                costs = np.concatenate([costs, _evaluate(job, more, use_batch, pool, jobs, bar)])
+                extra, bad = _evaluate_robust(jobs_set, model, more, use_batch, pool, jobs, bar)
+                costs = np.concatenate([costs, extra])
+                unstable += bad
                 pts += more
     finally:
         if pool is not None:
@@ -434,6 +486,7 @@ def tune(
             bar.close()
     wall = time.perf_counter() - t0
 
+    # candidate 0 is the start: the best is never worse than it, on the same (worst-case) score
     i_best = int(np.argmin(costs)) if np.any(np.isfinite(costs)) else 0
     best = pts[i_best]
     # the prediction: SimAxis, the path the verification takes (for the batch path, also the check
@@ -443,6 +496,7 @@ def tune(
     method = "batch (numpy, linear plant)" if use_batch else (f"pool ({jobs} processes)" if pool else "serial")
     result = TuneResult(axis_name, name, len(pts), wall, duration, weight, method, dict(start), dict(best),
                         predicted, start_metrics, costs, bounds, {**base, **best}, fixed=fixed)
+    result.corners, result.spread, result.unstable = len(perturbed), spread, unstable
     if verify:
         from drivectl.tools.machine import axis_model
 
@@ -450,6 +504,54 @@ def tune(
         result.measured, result.verified_on = verify_gains(cfg, axis_name, name, result.settings, duration,
                                                            weight, sim=sim)
     return result
+
+
+def _evaluate_robust(jobs_set: Sequence[_Job], model: Any, pts: list[dict[str, float]], use_batch: bool,
+                     pool: ProcessPoolExecutor | None, jobs: int, bar: Any) -> tuple[np.ndarray, int]:
+    """Each candidate's worst cost over the model and its corners, and how many candidates were rejected
+    as unstable on some corner. Candidates whose loop is linear (a ``loop_matrix``) are checked first by
+    the spectral radius on every corner and not simulated when unstable."""
+    costs = np.zeros(len(pts))
+    rejected = np.zeros(len(pts), dtype=bool)
+    corners_ = [j.plant for j in jobs_set if j.plant is not None]
+    if corners_:
+        rejected = _linear_rejects(jobs_set[0], model, corners_, pts)
+    alive = [i for i in range(len(pts)) if not rejected[i]]
+    unstable = int(rejected.sum())
+    sim_unstable = np.zeros(len(pts), dtype=bool)
+    for job in jobs_set:
+        if alive:
+            part = _evaluate(job, [pts[i] for i in alive], use_batch, pool, jobs, bar)
+            costs[alive] = np.maximum(costs[alive], part)
+            if job.plant is not None:
+                sim_unstable[alive] |= ~np.isfinite(part)
+        if bar is not None and len(alive) < len(pts):
+            bar.update(len(pts) - len(alive))
+    costs[rejected] = np.inf
+    # a candidate out of the limits on the model itself is not "unstable on a corner"
+    return costs, unstable + int(sim_unstable.sum())
+
+
+def _linear_rejects(job: _Job, model: Any, corners_: Sequence[Any], pts: list[dict[str, float]]) -> np.ndarray:
+    """Candidates whose closed loop (linear controller, linear corner) has a spectral radius >= 1 on any."""
+    from drivectl.controllers.base import SettingsError
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.robust import _is_linear, spectral_radius
+
+    out = np.zeros(len(pts), dtype=bool)
+    linear = [c for c in corners_ if _is_linear(c)]
+    if not linear:
+        return out
+    for i, g in enumerate(pts):
+        try:
+            ctrl = make_controller(job.controller, job.cfg.cycle_s, {**job.base, **g}, plant=model, axis=job.axis)
+        except SettingsError:
+            out[i] = True
+            continue
+        if not hasattr(ctrl, "loop_matrix"):
+            return out  # not a linear loop: the simulation decides
+        out[i] = any(spectral_radius(ctrl, c) >= 1.0 for c in linear)
+    return out
 
 
 def _evaluate(job: _Job, pts: list[dict[str, float]], use_batch: bool, pool: ProcessPoolExecutor | None,
@@ -540,6 +642,9 @@ def report(result: TuneResult) -> str:
            f"({r.method}), {r.duration:g} s runs on the model",
            "cost: " + COST_TEXT.format(w=r.weight, c=MAX_CLIPPED)]
     finite = int(np.isfinite(r.costs).sum())
+    if r.corners:
+        out.append(f"robust: scored on the model and {r.corners} +-{100 * r.spread:g} % corners (worst counts); "
+                   f"{r.unstable} candidates unstable on some corner, rejected")
     out.append(f"      {finite} of {r.candidates} candidates inside the limits")
     if r.fixed:
         out.append(f"not searched (start value 0): {', '.join(r.fixed)}")
@@ -595,6 +700,11 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=os.cpu_count(), help="worker processes (default: all CPUs)")
     p.add_argument("--weight", type=float, default=DEFAULT_WEIGHT,
                    help=f"w, um of max error per per mille of effort roughness (default {DEFAULT_WEIGHT})")
+    p.add_argument("--corners", type=int, metavar="N",
+                   help="score every candidate on N perturbed models too (default: every +-spread corner of the "
+                   "parameters that matter, 64 for two-mass; 0 = the model alone); the worst counts, a candidate "
+                   "unstable on any is rejected")
+    p.add_argument("--spread", type=float, default=0.10, help="relative perturbation of the corners (default 0.10)")
     p.add_argument("--no-verify", action="store_true", help="skip the verification trace on the axis")
     p.add_argument("--sim", action="store_true", help="verify on SimAxis instead of the configured bus")
     p.add_argument("--model", metavar="NAME|FILE", help="the model the search runs and the controller believes "
@@ -628,7 +738,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
             args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
         res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                    seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
-                   progress=sys.stderr.isatty())
+                   progress=sys.stderr.isatty(), corners=args.corners, spread=args.spread)
     except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2

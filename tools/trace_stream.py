@@ -284,7 +284,7 @@ class TraceWriter:
             if self._i == self._ring_rows:
                 self._wake.set()
         # a bulk writer may outrun the thread: wait for the ring to drain rather than spill
-        while len(self._blocks) > 2 and self.error is None:
+        while len(self._blocks) > 2 and self.error is None and self._thread is not None:
             self._wake.set()
             time.sleep(0.001)
 

@@ -572,10 +572,13 @@ class EmulatedDrive:
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         if len(data) > 1:  # CiA 301: no data, or the 1-byte SYNC counter
             self.frames.reject("sync-length", can_id, data, f"SYNC of {len(data)} bytes")
-            if SYNC_LENGTH_ERROR not in self._errors:
-                self._errors.add(SYNC_LENGTH_ERROR)
+            if SYNC_LENGTH_ERROR not in self._errors and self.nmt in (NmtState.PRE_OPERATIONAL,
+                                                                      NmtState.OPERATIONAL):
+                self._errors.add(SYNC_LENGTH_ERROR)  # (in Stopped: no EMCY, and nothing kept to report)
                 self._emcy(SYNC_LENGTH_ERROR)
             return
+        if SYNC_LENGTH_ERROR in self._errors:
+            self._clear_error(SYNC_LENGTH_ERROR)
         self._synced = True  # serve() re-anchors the wall clock here
         self._cycle(sync=True)
 

@@ -78,3 +78,22 @@ def test_a_non_conforming_node_fails_its_rows(tmp_path, capsys, monkeypatch):
     rc = main(["--config", str(cfg), "conformance", "--json", "--only", "Stopped"])
     out = json.loads(capsys.readouterr().out)
     assert rc == 1 and out["failed"] == 1 and "answered an SDO upload in Stopped" in out["rows"][0]["detail"]
+
+
+def test_an_emcy_in_stopped_fails_its_row(tmp_path, capsys, monkeypatch):
+    from drivectl.plant_emulator.node402 import EmulatedDrive
+
+    original = EmulatedDrive._on_sync
+
+    def sync_emcy_in_any_state(self, can_id, data, timestamp):  # a drive that reports in Stopped too
+        if len(data) > 1:
+            self.node.emcy.send(0x8240, 0x11)
+            return
+        original(self, can_id, data, timestamp)
+
+    monkeypatch.setattr(EmulatedDrive, "_on_sync", sync_emcy_in_any_state)
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(CONFIG.format(bus='interface = "virtual"'))
+    rc = main(["--config", str(cfg), "conformance", "--json", "--only", "no EMCY"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 1 and "sent in Stopped" in out["rows"][0]["detail"]

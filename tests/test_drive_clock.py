@@ -151,3 +151,24 @@ def test_rated_torque_written_scales_the_torque_and_a_long_rpdo_is_used_with_emc
     assert s.drive.drive.applied == pytest.approx(5.0)  # 100 per mille of 50 N
     emcy = [struct.unpack_from("<H", m.data)[0] for m in sent if m.arbitration_id == 0x81]
     assert emcy == [0x8220] and s.drive.frames.counts["long-rpdo"] == 1
+
+
+def test_in_process_the_heartbeat_consumer_runs_on_the_drive_clock():
+    """Lockstep: the master stops (no SYNC, no heartbeat); the drive's own clock (Machine.let_drives_run)
+    counts the consumer time, 300 ms as drivectl configures it, and the drive stops with 0x8130."""
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    object.__setattr__(ac, "rpdo_timeout_ms", 0)  # no RPDO deadline: the heartbeat consumer alone
+    with open_machine(cfg, ["x"], faults=[]) as m:
+        ax, drive = m.axes["x"], m.drives["x"]
+        ax.enable()
+        for _ in range(5):
+            ax.read()
+            ax.write(0.0)
+        assert drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+        safe = m.let_drives_run(1000, until_safe=True)["x"]
+        assert drive.drive.error_code == cia402.HEARTBEAT_LOST_ERROR
+        assert 295 <= safe <= 305  # 300 ms after the master's last heartbeat (sent at its first SYNC)

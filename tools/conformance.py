@@ -218,6 +218,27 @@ def _stopped(t: Target) -> str:
     return "silent to SDO in Stopped, answers again in Pre-operational"
 
 
+@check("NMT", "Stopped: no EMCY (a SYNC of wrong length reported only outside Stopped)")
+def _stopped_emcy(t: Target) -> str:
+    emcy = t.frames(0x80 + t.node_id)
+    try:
+        t.node.nmt.state = "STOPPED"
+        time.sleep(0.02)
+        t.network.send_message(0x80, b"\x01\x02")
+        stopped = t.emcy_codes(emcy, 0.15)
+        t.node.nmt.state = "PRE-OPERATIONAL"
+        time.sleep(0.02)
+        t.network.send_message(0x80, b"\x01\x02")
+        preop = t.emcy_codes(emcy, 0.15)
+    finally:
+        t.forget(emcy)
+    if stopped:
+        raise Failed(f"EMCY {[hex(c) for c in stopped]} sent in Stopped")
+    if 0x8240 not in preop:
+        raise Skip("the node reports no SYNC length error (EMCY 0x8240) in Pre-operational either: cannot tell")
+    return "none in Stopped; 0x8240 in Pre-operational"
+
+
 @check("NMT", "reset communication restores 0x1000-0x1FFF (0x1017)")
 def _reset_comm(t: Target) -> str:
     default = t.od[cia402.PRODUCER_HEARTBEAT_TIME].default

@@ -713,30 +713,6 @@ def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
             fault.error_code = code
 
 
-#: states a stopping drive passes through (Fault Reaction Active ends in Fault at the next cycle)
-_STILL_CHANGING = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
-
-
-def _stop_cycle(channels: Sequence[Channel]) -> bool:
-    """One zero-effort cycle of every axis during a stop; False when no axis could be cycled."""
-    alive = False
-    for ch in channels:
-        axis = ch.axis
-        try:
-            axis.read()
-            alive = True
-            if getattr(axis, "lost_cycles", 0) and hasattr(axis, "refresh_state"):
-                _quietly(axis.refresh_state)  # a bridged sample carries a stale statusword: ask by SDO
-        except AxisError:
-            # no sample (TPDOs gone): ask the drive by SDO
-            if hasattr(axis, "refresh_state") and _quietly(axis.refresh_state) is not None:
-                alive = True
-        except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
-            pass
-        _quietly(axis.write, 0.0)
-    return alive
-
-
 def _quietly(fn: Callable[..., object], *args: object) -> object:
     try:
         return fn(*args)

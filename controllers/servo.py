@@ -330,12 +330,12 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
         for k in range(n):
             if request.signum:
                 raise _Interrupted  # at a cycle boundary: no frame is half-handled
-            if pacer is not None:
-                pacer.wait(k)
             j = k - base
-            if j == REF_CHUNK:  # the next chunk of references (bounded memory for any run length)
+            if j == REF_CHUNK:  # the next chunk of references (bounded memory), before the deadline wait
                 plan.load(k)
                 refs, base, j = plan.refs, k, 0
+            if pacer is not None:
+                pacer.wait(k)
             for i, ch in enumerate(channels):
                 fb = sample_axis(ch, k)
                 pr, vr, ar, jr = refs[i]

@@ -452,3 +452,24 @@ def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, c
     assert m.unconfirmed == ["x"]
     err = capsys.readouterr().err
     assert "axis x: the drive last reported Operation Enabled after the disable: it may still be powered" in err
+
+
+def test_identify_refuses_an_axis_away_from_its_start_without_approach(monkeypatch):
+    """identify opens the axis where its identification profile starts; a drive standing elsewhere
+    (as across processes) is shown the approach and, with --no-approach, refused before it moves."""
+    from drivectl.tools import machine as machine_module
+    from drivectl.tools.commission import identify_axis
+    from drivectl.tools.config import load_config
+
+    opened = []
+    real = machine_module.open_machine
+
+    def elsewhere(cfg, names, **kw):
+        kw["start"] = {n: p + 0.005 for n, p in kw["start"].items()}  # 5 mm off
+        opened.append(real(cfg, names, **kw))
+        return opened[-1]
+
+    monkeypatch.setattr(machine_module, "open_machine", elsewhere)
+    with pytest.raises(LimitError, match=r"to its profile's start .*--no-approach; nothing moved"):
+        identify_axis(load_config(None), "x", approach=False)
+    assert opened and opened[0].drives["x"].drive.power is PowerState.SWITCH_ON_DISABLED

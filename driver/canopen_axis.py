@@ -3,7 +3,8 @@
 Boot (NMT reset, boot-up awaited), identity 0x1018 checked against the configuration, configuration by
 SDO (mode 10 = CST, PDO mapping through canopen's PdoMap, SYNC period, heartbeat), then once per cycle:
 SYNC -> TPDOs in (statusword, position, velocity, torque) -> the controller -> RPDO out (controlword,
-target torque in per mille of the rated effort). The CiA 402 state machine is stepped inside the
+target torque in per mille of the rated effort; with the minimal mapping the controlword goes in an
+event-driven RPDO2, only in the cycles where it changes). The CiA 402 state machine is stepped inside the
 cycle from the tables of driver/cia402.py (never canopen's blocking BaseNode402 setters): enabling
 takes two cycles, a fault reset is a rising edge of bit 7 verified by the next statusword.
 
@@ -69,6 +70,14 @@ RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
 #: the compact mapping (``bus.pdo_mapping = "compact"``, tools/bus_budget.py): one 8-byte TPDO with statusword,
 #: position and torque actual; the velocity derived on the host from two positions (as SimAxis does)
 COMPACT_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),)
+#: the minimal mapping (``bus.pdo_mapping = "minimal"``): TPDO1 statusword + position (velocity derived on the
+#: host, torque actual not mapped: read 0x6077 by SDO where a tool needs it); RPDO1 the target torque alone,
+#: synchronous; RPDO2 the controlword, event-driven (transmission type 255): sent only in the cycles where the
+#: controlword changes (CiA 301 practice), so it costs the bus nothing in steady state
+MINIMAL_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),)
+MINIMAL_RPDO_ENTRIES = (((cia402.TARGET_TORQUE, 0),), ((cia402.CONTROLWORD, 0),))
+#: the PDO mappings the master knows (tools/bus_budget.py counts their bits)
+MAPPINGS = ("full", "compact", "minimal")
 TPDO_ENTRIES = (
     ((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),
     ((cia402.VELOCITY_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),
@@ -182,16 +191,23 @@ class CanopenAxis:
         self._consumed = self.clock.cycle  # the cycle whose TPDOs the last read() used
         self._controlword = 0
         self._rpdo_cob = RPDO_BASE[0] + node_id
-        self._rpdo = PdoLayout.from_entries(od, RPDO_ENTRIES)
-        if mapping not in ("full", "compact"):
-            raise ValueError(f"axis {name}: mapping: expected full or compact, got {mapping!r}")
+        if mapping not in MAPPINGS:
+            raise ValueError(f"axis {name}: mapping: expected {', '.join(MAPPINGS)}, got {mapping!r}")
         self.mapping = mapping
-        self._tpdo_entries = COMPACT_TPDO_ENTRIES if mapping == "compact" else TPDO_ENTRIES
+        self._rpdo_entries = MINIMAL_RPDO_ENTRIES if mapping == "minimal" else (RPDO_ENTRIES,)
+        self._rpdo = PdoLayout.from_entries(od, self._rpdo_entries[0])
+        # minimal: the controlword's event-driven RPDO2, and the controlword it last carried (None: none yet,
+        # so the first cycle after connect() sends it)
+        self._cw_rpdo = PdoLayout.from_entries(od, self._rpdo_entries[1]) if mapping == "minimal" else None
+        self._cw_cob = RPDO_BASE[1] + node_id
+        self._cw_sent: int | None = None
+        self._tpdo_entries = {"compact": COMPACT_TPDO_ENTRIES, "minimal": MINIMAL_TPDO_ENTRIES}.get(mapping,
+                                                                                                  TPDO_ENTRIES)
         self._tpdo = [PdoLayout.from_entries(od, e) for e in self._tpdo_entries]
         self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(self._tpdo_entries))]
         self._fresh = [False] * len(self._tpdo_entries)
-        self._raw = [(0, 0, 0)] if mapping == "compact" else [(0, 0), (0, 0)]
-        self._prev_counts: tuple[int, int] | None = None  # compact: (counts, cycle) of the last sample
+        self._raw = [tuple(0 for _ in e) for e in self._tpdo_entries]
+        self._prev_counts: tuple[int, int] | None = None  # compact, minimal: (counts, cycle) of the last sample
         # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
         # reset does not stack a second handler per TPDO (each would count a late frame again)
         self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo_entries))]
@@ -248,8 +264,9 @@ class CanopenAxis:
         self._controlword = self.master.controlword(self.power)
         counts = self._sdo(cia402.POSITION_ACTUAL)
         self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
-        if self.mapping == "compact":
+        if self.mapping != "full":
             self._prev_counts = (counts, self.clock.cycle)
+        self._cw_sent = None  # the drive's 0x6040 after a (re)boot is not what we last sent
         self.lost_cycles = 0
         self._rebooted = False
         self._consumed = self.clock.cycle
@@ -352,11 +369,11 @@ class CanopenAxis:
                                   "expected 10 (CST)")
 
     def _map_pdos(self) -> None:
-        """RPDO1 and TPDO1/2 as drivectl needs them, every other PDO off (canopen's PdoMap writes)."""
+        """The RPDOs and TPDOs of the mapping, every other PDO off (canopen's PdoMap writes)."""
         node = self.node
         node.rpdo.read()
         node.tpdo.read()
-        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE),
+        for maps, wanted, base in ((node.rpdo, self._rpdo_entries, RPDO_BASE),
                                    (node.tpdo, self._tpdo_entries, TPDO_BASE)):
             for n, pdo in maps.map.items():
                 pdo.clear()
@@ -364,10 +381,13 @@ class CanopenAxis:
                     for index, sub in wanted[n - 1]:
                         pdo.add_variable(index, sub)
                     pdo.cob_id = base[n - 1] + self.node_id
-                    pdo.trans_type = 1  # synchronous, every SYNC
                     pdo.enabled = True
-                    if maps is node.rpdo and 5 in pdo.com_record.od:
-                        pdo.event_timer = self.rpdo_timeout_ms  # the drive's deadline on our RPDO
+                    if maps is node.rpdo and n == 2:
+                        pdo.trans_type = 255  # minimal's controlword: event-driven, taken on reception
+                    else:
+                        pdo.trans_type = 1  # synchronous, every SYNC
+                        if maps is node.rpdo and 5 in pdo.com_record.od:
+                            pdo.event_timer = self.rpdo_timeout_ms  # the drive's deadline on our cyclic RPDO
                 else:
                     pdo.enabled = False
                 pdo.save()
@@ -380,7 +400,7 @@ class CanopenAxis:
     def read_back_mapping(self) -> dict[str, list[int]]:
         """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
         out = {}
-        for name, base, n in (("rpdo", cia402.RPDO_MAP, 1), ("tpdo", cia402.TPDO_MAP, 2)):
+        for name, base, n in (("rpdo", cia402.RPDO_MAP, len(self._rpdo_entries)), ("tpdo", cia402.TPDO_MAP, 2)):
             for i in range(n):
                 count = self._sdo(base + i, 0)
                 out[f"{name}{i + 1}"] = [self._sdo(base + i, s + 1) for s in range(count)]
@@ -438,13 +458,15 @@ class CanopenAxis:
 
     @property
     def _watched_cobs(self) -> tuple[int, ...]:
+        if self._cw_rpdo is not None:
+            return (self._rpdo_cob, self._cw_cob, SYNC_COB_ID, NMT_COB_ID)
         return (self._rpdo_cob, SYNC_COB_ID, NMT_COB_ID)
 
     def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
         """A frame on a COB-ID only the master sends (it never receives its own): someone else sent it."""
         if not self._connected or self._foreign is not None:
             return
-        if can_id == self._rpdo_cob:
+        if can_id == self._rpdo_cob or (can_id == self._cw_cob and self._cw_rpdo is not None):
             self._foreign = (FaultKind.ROGUE_RPDO, f"an RPDO on 0x{can_id:03X} that the master did not send "
                              "(a second producer: the drive takes whichever came last)")
         elif can_id == SYNC_COB_ID:
@@ -506,8 +528,8 @@ class CanopenAxis:
             if self._prev_counts is None:
                 (sw, counts), (vel_counts, _torque) = self._raw
                 velocity = enc.from_counts(vel_counts)
-            else:  # compact: the velocity from this position and the last one received (as SimAxis derives it)
-                sw, counts, _torque = self._raw[0]
+            else:  # compact, minimal: the velocity from this position and the last one (as SimAxis derives it)
+                sw, counts = self._raw[0][:2]
                 velocity = enc.velocity(counts, self._prev_counts[0], (cycle - self._prev_counts[1]) * self.dt)
                 self._prev_counts = (counts, cycle)
             self.statusword = sw
@@ -531,6 +553,8 @@ class CanopenAxis:
     @property
     def torque_actual(self) -> float:
         """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""
+        if self.mapping == "minimal":
+            return math.nan
         try:
             return self.scale.from_permille(self._raw[0][2] if self.mapping == "compact" else self._raw[1][1])
         except (IndexError, TypeError):
@@ -550,6 +574,7 @@ class CanopenAxis:
         Operational, or a second RPDO producer overriding the master's). The RPDO says the same from now on."""
         self._target(PowerState.QUICK_STOP_ACTIVE)
         self._sdo(cia402.CONTROLWORD, value=int(cia402.Command.QUICK_STOP))
+        self._cw_sent = None  # the drive's 0x6040 is the SDO's now: the next cycle sends ours again
 
     def abort_connection_option(self) -> int | None:
         """0x6007 by SDO (None: not readable): 1 fault, 2 disable voltage, 3 quick stop on a lost connection."""
@@ -630,8 +655,15 @@ class CanopenAxis:
 
     def write(self, effort: float) -> None:
         try:
-            self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
-                                                                               self.scale.to_permille(effort)))
+            if self._cw_rpdo is None:
+                self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
+                                                                                   self.scale.to_permille(effort)))
+                return
+            cw = self._controlword
+            if cw != self._cw_sent:  # minimal: the controlword only when it changes, in the same cycle
+                self.network.send_message(self._cw_cob, self._cw_rpdo.codec.pack(cw))
+                self._cw_sent = cw
+            self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self.scale.to_permille(effort)))
         except can.CanError as exc:
             raise AxisError(f"axis {self.name}: RPDO not sent: {exc}", FaultKind.BUS_ERROR) from None
 

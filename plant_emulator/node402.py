@@ -14,7 +14,10 @@ Built on canopen's LocalNode (object dictionary from the EDS) and adding what th
 * PDOs (pdo_rules.py for the rules, here the engine): transmission types 0, 1..240 (every n-th SYNC),
   252/253 (on RTR), 254/255 (on change, inhibit time 0x1800:3, event timer 0x1800:5); a new mapping
   takes effect the moment it is made valid; an RPDO shorter than its mapping is dropped with EMCY
-  0x8210, a longer one used with EMCY 0x8220 (CANopenNode does the same);
+  0x8210, a longer one used with EMCY 0x8220 (CANopenNode does the same); an RPDO's values are stored on
+  reception, whatever its type (an event-driven one, 255, as drivectl's minimal mapping sends the
+  controlword, is thus taken at once), and the drive acts on them at its next cycle; the RPDO deadline
+  (0x1400:05) watches RPDO1;
 * EMCY: 0x1001 live (bit 0 any error, bit 4 communication), an error-reset EMCY (0x0000) when the last
   error clears;
 * CiA 402: the drive (plant_emulator/drive.py, shared with SimAxis) steps the plant once per cycle
@@ -538,6 +541,8 @@ class EmulatedDrive:
                     continue
                 self._set_mode(value)
             store.setdefault(index, {})[sub] = bytes(data[offset:offset + width])
+        if rp.comm != cia402.RPDO_COMM:
+            return  # another RPDO (an event-driven controlword, type 255): the deadline watches RPDO1 only
         if self._rpdo_timeout_ms:
             self._ms_since_rpdo = 0.0
         self._clear_error(RPDO_TIMEOUT_ERROR)

@@ -51,6 +51,7 @@ class Rpdo:
     layout: PdoLayout
     slots: tuple[tuple[int, int, int, int], ...]  # (index, sub, byte offset, byte width) per entry
     trans_type: int
+    comm: int = 0x1400  # its communication parameter (0x1400:05, RPDO1's event timer, is the drive's deadline)
 
 
 @dataclass
@@ -219,7 +220,7 @@ class PdoRules:
                 width = struct.calcsize("<" + code)
                 slots.append((index, sub, offset, width))
                 offset += width
-            out.append(Rpdo(cob & 0x7FF, layout, tuple(slots), self.value(comm, 2)))
+            out.append(Rpdo(cob & 0x7FF, layout, tuple(slots), self.value(comm, 2), comm))
         return out
 
     def tpdos(self, getter: Callable[[int, int], Callable[[], int]]) -> list[Tpdo]:

@@ -14,6 +14,8 @@ the same master state machine choosing the controlword, and the same transport-e
 
 from __future__ import annotations
 
+import math
+
 from drivectl.driver.axis import AxisError, Feedback
 from drivectl.driver.cia402 import MasterStateMachine, PowerState, encode_statusword
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
@@ -38,6 +40,7 @@ class SimAxis:
         enabled: bool = False,
         io: object = None,
         derived_velocity: bool = False,
+        torque_mapped: bool = True,
     ):
         self.name = name
         self.plant = plant
@@ -45,6 +48,7 @@ class SimAxis:
         self.effort_unit = plant.effort_unit
         self.encoder = Encoder(resolution) if resolution else None
         self.effort_scale = effort_scale
+        self.torque_mapped = torque_mapped  # the minimal mapping carries no 0x6077: NaN, as on the bus
         power = PowerState.OPERATION_ENABLED if enabled else PowerState.SWITCH_ON_DISABLED
         self.drive = DriveModel(plant, transport_delay=transport_delay, force_noise=force_noise, seed=seed,
                                 initial_position=initial_position, power=power, io=io)
@@ -75,8 +79,8 @@ class SimAxis:
 
     @property
     def torque_actual(self) -> float:
-        """0x6077: the effort the drive applies now."""
-        return self.drive.applied
+        """0x6077: the effort the drive applies now (NaN when the bus mapping would not carry it)."""
+        return self.drive.applied if self.torque_mapped else math.nan
 
     def read_error_code(self) -> int:
         """0x603F of the drive."""

@@ -41,7 +41,11 @@ def test_over_the_ceiling_refused_in_one_line_before_anything_moves(tmp_path, ca
     assert len(err) == 1, err
     assert "85.4 % bus load (103.0 % with worst-case stuffing) for 3 axes" in err[0]
     assert "70 % ceiling (bus.load_ceiling_pct): 2 axes fit" in err[0]
-    p = _cfg(tmp_path, axes="wxyz")  # four axes: even the compact mapping takes 80.7 %
+    p = _cfg(tmp_path, axes="vwxyz")  # five axes: even the minimal mapping takes 83.7 %
+    assert _trace(tmp_path, p, "v,w,x,y,z") == 2
+    err = capsys.readouterr().err
+    assert "83.7 % bus load (100.5 % with worst-case stuffing) for 5 axes" in err and "4 axes fit" in err
+    p = _cfg(tmp_path, 'pdo_mapping = "compact"', axes="wxyz")  # four compact: 80.7 %
     assert _trace(tmp_path, p, "w,x,y,z") == 2
     err = capsys.readouterr().err
     assert "80.7 % bus load (97.5 % with worst-case stuffing) for 4 axes" in err and "3 axes fit" in err

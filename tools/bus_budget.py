@@ -13,19 +13,26 @@ figure a bus analyser shows and the rule of thumb is about (room for SDO, EMCY, 
 retransmissions); the bound must stay under 100 %, or the cycle's frames might not fit the cycle at all.
 Either over: the run is refused with one line naming the figure, before any drive is enabled.
 
-Figures for 1 Mbit/s and 1 kHz (from this module; SYNC 47/55 bits):
+Figures for 1 Mbit/s and 1 kHz (from this module; SYNC 47/55 bits; nominal bits per cycle, per cent):
 
-=========================  ===========  =========  =========  =========  =========
-mapping                    bits / axis  1 axis     2 axes     3 axes     4 axes
-=========================  ===========  =========  =========  =========  =========
-drivectl's (TPDO 6+6, R 4)  269 (325)   31.6 %     58.5 %     85.4 %     112.3 %
-compact (TPDO 8, RPDO 4)    190 (230)   23.7 %     42.7 %     61.7 %     80.7 %
-=========================  ===========  =========  =========  =========  =========
+=============================  ===========  ===========  ===========  ===========  ===========  ===========
+mapping                        bits / axis  1 axis       2 axes       3 axes       4 axes       5 axes
+=============================  ===========  ===========  ===========  ===========  ===========  ===========
+full (TPDO 6+6, RPDO 4)         269 (325)   316  31.6 %  585  58.5 %  854  85.4 %  1123 112.3 % 1392 139.2 %
+compact (TPDO 8, RPDO 4)        190 (230)   237  23.7 %  427  42.7 %  617  61.7 %  807  80.7 %   997  99.7 %
+minimal (TPDO 6, RPDO 2 + ev.)  158 (190)   205  20.5 %  363  36.3 %  521  52.1 %  679  67.9 %   837  83.7 %
+=============================  ===========  ===========  ===========  ===========  ===========  ===========
 
-``bus.pdo_mapping = "auto"`` (default) uses the full mapping where it fits, else the compact one
-(:func:`resolve_mapping`). So four axes at 1 kHz do not fit one 1 Mbit/s bus under 70 % with any
-mapping that carries a statusword, a position and a torque setpoint per axis each cycle (the compact
-frames alone are 80.7 % nominal); at a 2 ms cycle they take 40.4 % (48.8 % bound).
+(worst-case stuffing: minimal 4 axes 815 bits, 81.5 %; compact 3 axes 74.5 %.)
+
+``bus.pdo_mapping = "auto"`` (default) uses the first of full, compact and minimal that fits
+(:func:`resolve_mapping`): at 1 kHz on 1 Mbit/s full for 1-2 axes, compact for 3, minimal for 4; five
+do not fit (83.7 %): a 2 ms cycle or a second bus. The minimal mapping carries per cycle only what the
+loop needs (statusword and position in, target torque out): its controlword travels in an event-driven
+RPDO2 (transmission type 255, 2 data bytes, 63 bits) that the master sends only in the cycles where the
+controlword changes (enable, quick stop, the fault-reset edge, disable), so it is counted as zero in
+steady state; torque actual (0x6077) is not mapped (read by SDO where a tool needs it; the trace's
+torque column is then empty, NaN). CiA 301 practice: an event-driven RPDO for what changes rarely.
 """
 
 from __future__ import annotations
@@ -39,7 +46,19 @@ from drivectl.tools.config import ConfigError, MachineConfig
 MAPPINGS: dict[str, tuple[tuple[str, int], ...]] = {
     "full": (("TPDO1 statusword + position", 6), ("TPDO2 velocity + torque", 6), ("RPDO1 controlword + torque", 4)),
     "compact": (("TPDO1 statusword + position + torque", 8), ("RPDO1 controlword + torque", 4)),
+    "minimal": (("TPDO1 statusword + position", 6), ("RPDO1 target torque", 2)),
 }
+#: frames sent only on an event, not counted in the steady-state load: (what, data bytes), by mapping
+EVENT_FRAMES: dict[str, tuple[tuple[str, int], ...]] = {
+    "minimal": (("RPDO2 controlword, event-driven (type 255): only in the cycles where it changes", 2),),
+}
+#: what a mapping leaves out, said in the budget's lines
+NOT_MAPPED: dict[str, str] = {
+    "compact": "velocity derived on the host from two positions",
+    "minimal": "velocity derived on the host; torque actual 0x6077 not mapped: read by SDO where a tool needs it",
+}
+#: the order "auto" tries them in: the first that fits under the ceiling
+AUTO_ORDER = ("full", "compact", "minimal")
 #: the mapping drivectl configures today (driver/canopen_axis.py RPDO_ENTRIES, TPDO_ENTRIES)
 DEFAULT_MAPPING = "full"
 DEFAULT_CEILING_PCT = 70.0
@@ -101,16 +120,20 @@ class BusLoadError(ConfigError):
 
 
 def resolve_mapping(cfg: MachineConfig, axes: int) -> str:
-    """The mapping a run of ``axes`` axes uses: ``bus.pdo_mapping``, where "auto" (the default) is drivectl's
-    full mapping when it fits under the ceiling and the compact one otherwise. The full mapping carries the
-    drive's own velocity (0x606C), which the controllers were tuned on; the compact one derives it on the
-    host from two positions (SimAxis the same, so --sim still equals the bus bit for bit)."""
+    """The mapping a run of ``axes`` axes uses: ``bus.pdo_mapping``, where "auto" (the default) is the first
+    of full, compact and minimal that fits under the ceiling (the last one when none does: the run is then
+    refused by :func:`check_bus_load`). The full mapping carries the drive's own velocity (0x606C), which
+    the controllers were tuned on; compact and minimal derive it on the host from two positions (SimAxis
+    the same, so --sim still equals the bus bit for bit)."""
     mapping = getattr(cfg.bus, "pdo_mapping", "auto")
     if mapping != "auto":
         return mapping
     ceiling = getattr(cfg.bus, "load_ceiling_pct", DEFAULT_CEILING_PCT)
-    full = bus_load(axes, cfg.cycle_s, cfg.bus.bitrate, "full")
-    return "full" if full.nominal_pct <= ceiling and full.bound_pct < 100.0 else "compact"
+    for candidate in AUTO_ORDER:
+        load = bus_load(axes, cfg.cycle_s, cfg.bus.bitrate, candidate)
+        if load.nominal_pct <= ceiling and load.bound_pct < 100.0:
+            return candidate
+    return AUTO_ORDER[-1]
 
 
 def machine_load(cfg: MachineConfig, names: Sequence[str] | None = None) -> BusLoad:
@@ -125,9 +148,7 @@ def check_bus_load(cfg: MachineConfig, names: Sequence[str]) -> BusLoad:
     load = machine_load(cfg, names)
     ceiling = getattr(cfg.bus, "load_ceiling_pct", DEFAULT_CEILING_PCT)
     if load.nominal_pct > ceiling or load.bound_pct >= 100.0:
-        fit = axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, load.mapping)
-        if getattr(cfg.bus, "pdo_mapping", "auto") == "auto":
-            fit = max(fit, axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, "compact"))
+        fit = max(axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, m) for m in _mappings(cfg))
         raise BusLoadError(
             f"{cfg.source}: bus: {load.nominal_pct:.1f} % bus load ({load.bound_pct:.1f} % with worst-case "
             f"stuffing) for {load.axes} axes at {cfg.cycle_s * 1e3:g} ms on {cfg.bus.bitrate / 1e6:g} Mbit/s is over "
@@ -137,7 +158,7 @@ def check_bus_load(cfg: MachineConfig, names: Sequence[str]) -> BusLoad:
 
 def _mappings(cfg: MachineConfig) -> tuple[str, ...]:
     mapping = getattr(cfg.bus, "pdo_mapping", "auto")
-    return ("full", "compact") if mapping == "auto" else (mapping,)
+    return AUTO_ORDER if mapping == "auto" else (mapping,)
 
 
 def show_lines(cfg: MachineConfig) -> list[str]:
@@ -148,8 +169,14 @@ def show_lines(cfg: MachineConfig) -> list[str]:
     for what, n in MAPPINGS[load.mapping]:
         nom, bound = frame_bits(n)
         lines.append(f"#   {what}: {n} bytes, {nom} bits ({bound} with worst-case stuffing)")
+    for what, n in EVENT_FRAMES.get(load.mapping, ()):
+        nom, bound = frame_bits(n)
+        lines.append(f"#   {what}: {n} bytes, {nom} bits ({bound}) when sent, counted as 0 in steady state")
+    if load.mapping in NOT_MAPPED:
+        lines.append(f"#   ({NOT_MAPPED[load.mapping]})")
     if getattr(cfg.bus, "pdo_mapping", "auto") == "auto":
-        lines.append("#   (bus.pdo_mapping = \"auto\": the full mapping where it fits under the ceiling, else compact)")
+        lines.append("#   (bus.pdo_mapping = \"auto\": the first of full, compact, minimal that fits under the "
+                     "ceiling)")
     lines.append(f"# {load.text()}")
     lines.append(f"# ceiling {ceiling:g} % (bus.load_ceiling_pct): "
                  f"{max(axes_per_bus(cfg.cycle_s, cfg.bus.bitrate, ceiling, m) for m in _mappings(cfg))} axes fit at "

@@ -122,7 +122,7 @@ class BusConfig:
     port: int = 29536  # socketcand only
     options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
     load_ceiling_pct: float = 70.0  # the most of the bitrate the cyclic frames may take (tools/bus_budget.py)
-    pdo_mapping: str = "auto"  # full | compact | auto: full where it fits the ceiling, else compact (bus_budget.py)
+    pdo_mapping: str = "auto"  # full | compact | minimal | auto: the first that fits the ceiling (bus_budget.py)
 
     def open_kwargs(self) -> dict[str, Any]:
         """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
@@ -178,8 +178,9 @@ def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     if ceiling > 100:
         raise ConfigError(f"{src}: bus.load_ceiling_pct: a per cent of the bitrate, 0 < x <= 100, got {ceiling:g}")
     mapping = bus_raw.get("pdo_mapping", "auto")
-    if mapping not in ("full", "compact", "auto"):
-        raise ConfigError(f"{src}: bus.pdo_mapping: expected \"auto\", \"full\" or \"compact\", got {mapping!r}")
+    if mapping not in ("full", "compact", "minimal", "auto"):
+        raise ConfigError(f"{src}: bus.pdo_mapping: expected \"auto\", \"full\", \"compact\" or \"minimal\", "
+                          f"got {mapping!r}")
     return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
                      dict(options), ceiling, mapping)
 

@@ -201,7 +201,7 @@ def open_machine(
             axes[name] = SimAxis(specs[name].build(dt), name=name, resolution=ac.encoder_m_per_count,
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
                                  initial_position=start.get(name, 0.0), io=ac.emulator,
-                                 derived_velocity=mapping == "compact")
+                                 derived_velocity=mapping != "full", torque_mapped=mapping != "minimal")
         return Machine(axes, specs, "sim (SimAxis, no bus)")
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)

@@ -35,7 +35,7 @@ MOVING_COUNTS = 64
 #: encoder resolution assumed when the trace does not give ``encoder_m_per_count`` (drivectl's default)
 DEFAULT_RESOLUTION_M = 76.29e-9
 #: the floor's smooth part of a window's error: polynomials in t up to this order (see _projector)
-SMOOTH_ORDER = 4
+SMOOTH_ORDER = 2
 #: Savitzky-Golay window for the start velocity (samples, odd) and its polynomial order
 SG_LENGTH = 15
 SG_ORDER = 3

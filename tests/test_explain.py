@@ -267,18 +267,3 @@ def test_transport_delay_cycles_from_the_trace():
     with pytest.raises(ExplainError, match="encoder_m_per_count"):
         prepare(Trace(dict(tr.columns), {**tr.meta, "encoder_m_per_count": "-1"}), spec, "x.csv")
 
-
-def test_noise_free_trace_has_a_floor_and_no_traceback():
-    """A simulated trace without noise or quantisation: the floor is the encoder's, the answer none."""
-    from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Limits, run
-    from drivectl.plant_emulator.sim_axis import SimAxis
-    from drivectl.profiles.sequence import back_and_forth
-
-    spec = load_plant("rigid-y")
-    axis = SimAxis(spec.build(0.001), resolution=None, force_noise=0.0, seed=1, name="y")
-    tr = run(axis, make_controller("pid-dob", 0.001, {}, plant=spec, axis="y"), back_and_forth(**PROFILE_B),
-             limits=Limits(following_error=0.02)).trace
-    res = explain(tr, spec)
-    assert res.effect == "none", res.report
-    assert 0 < res.floor < 1e-6 and res.gap_before < 1e-6

@@ -221,6 +221,11 @@ class AxisControl:
             toward = hi - margin if velocity > 0 else lo + margin
         else:
             toward = rt.traj.position + math.copysign(1e3, velocity)
+        if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
+            done = Move(self._m.loop, self.name, "jog", velocity)
+            done._end("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
+                      "window inside it); nothing moved")
+            return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
         speed = abs(velocity)
         current = rt.handle
@@ -229,6 +234,8 @@ class AxisControl:
             def renew() -> None:
                 if rt.handle is current:
                     rt.jog_until = loop.cycle + deadman
+                    if rt.traj.stopping:  # the dead man had begun the stop: on again
+                        rt.traj.move_to(toward, speed)
             loop.submit(renew)
             return current
 

@@ -196,7 +196,8 @@ class Capture:
         waited = self.run_until(self._done.is_set, timeout) if self.run_until else self._done.wait(timeout)
         if not waited:
             what = "filled" if self.state == "triggered" else "triggered"
-            raise TimeoutError(f"capture on axis {self.axis}: not {what} within {timeout:g} s")
+            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
+            raise TimeoutError(f"capture on axis {self.axis}: not {what} {within}")
         return self.result()
 
     def result(self) -> Trace:

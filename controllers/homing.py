@@ -218,18 +218,19 @@ def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float,
     start = axis.position
     rt = axis._rt
     # the jog's own target: max_travel away (no soft limits while the coordinates are unknown)
-    axis.jog(velocity)
-    target = rt.traj.position + math.copysign(travel, velocity)
+    jog = axis.jog(velocity)
 
     def retarget() -> None:
-        rt.traj.move_to(target, abs(velocity))
+        if rt.handle is jog:
+            rt.traj.move_to(rt.traj.position + math.copysign(travel, velocity), abs(velocity))
 
     loop.submit(retarget)
+    machine.run_until(lambda: jog.status != "pending" or jog.done, 5.0)  # taken by the loop (wall clock)
     while True:
         if found():
             pos = axis.position
             return pos
-        if rt.handle is None or rt.handle.kind != "jog" or rt.state.value != "servo":
+        if jog.done or rt.state.value != "servo":
             if rt.fault is not None:
                 from drivectl.controllers.loop import MotionFault
 

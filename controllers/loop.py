@@ -142,7 +142,11 @@ class Move:
         ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
         TimeoutError when it has not ended within ``timeout``."""
         if not self.loop.wait_until(self._done.is_set, timeout):
-            raise TimeoutError(f"axis {self.axis}: {self.kind} not done within {timeout:g} s (status {self.status})")
+            if self.loop.error is not None:
+                raise AxisError(f"axis {self.axis}: {self.kind}: the servo loop ended ({self.loop.error!r}); the "
+                                "drives' own watchdogs stop the axes")
+            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
+            raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
         self._close_record()
         if self.status == "fault":
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)

@@ -31,6 +31,7 @@ the rigid-body approximation (q = M^2 w^8 sigma_x^2 dt for the chain position - 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -47,10 +48,12 @@ from drivectl.profiles.base import Reference
 
 @dataclass
 class MbcSettings(Settings):
-    bandwidth_hz: float = param(40.0, lo=0.1, hi=200.0, unit="Hz",
-                                doc="state-feedback bandwidth (rigid-body mode of the LQR loop)")
-    observer_hz: float = param(20.0, lo=0.1, hi=200.0, unit="Hz", doc="Kalman filter's disturbance bandwidth")
-    mode_damping: float = param(30.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
+    bandwidth_hz: float = param(0.0, lo=0.0, hi=200.0, unit="Hz",
+                                doc="state-feedback bandwidth (rigid-body mode of the LQR loop); 0: from the model "
+                                "(AUTO_HZ: 40 Hz with a coupling mode, 80 Hz for a rigid axis)")
+    observer_hz: float = param(0.0, lo=0.0, hi=200.0, unit="Hz",
+                               doc="Kalman filter's disturbance bandwidth; 0: from the model (AUTO_HZ: 20 Hz)")
+    mode_damping: float = param(10.0, lo=0.0, doc="LQR weight on the coupling's deflection rate (two-mass): "
                                 "active damping of the axial mode, relative to the position weight")
     position_noise_m: float = param(2.2e-8, lo=0.0, lo_open=True, unit="m",
                                     doc="position measurement noise (76.29 nm counts: 22 nm)")
@@ -61,6 +64,14 @@ class MbcSettings(Settings):
                               doc="auto: an oscillator at the model's disturbance frequency, else a ramp")
     friction_ff: bool = choice(True, (True, False), doc="compensate the model's friction in the feed-forward")
     feedforward: bool = choice(True, (True, False), doc="the model-inverse feed-forward (off: feedback only)")
+
+
+#: (bandwidth_hz, observer_hz) when the settings leave them 0, by the model's number of bodies: a coupling
+#: mode (two-mass) limits both (every +-10 % corner stays stable with margin: largest spectral radius 0.983);
+#: a rigid axis carries twice the state-feedback bandwidth (0.964 on rigid-x's 32 corners), which the friction
+#: it must reject at its reversals needs (bench/precision.py: x with Stribeck and noise 15.6 -> 11.0 um, with
+#: explain's model 2.4 um)
+AUTO_HZ = {2: (40.0, 20.0), 1: (80.0, 20.0)}
 
 
 class _Extrapolated:
@@ -180,6 +191,7 @@ class Mbc(Controller):
         self.spec = model
         self._table: tuple[np.ndarray, ...] | None = None
         self._design_for: Any = None
+        self._auto: list[str] = []
         super().__init__(dt, settings, **kwargs)
 
     @classmethod
@@ -193,6 +205,13 @@ class Mbc(Controller):
     # ---------------------------------------------------------------------------------------------
     def _ensure_design(self) -> None:
         s = self.settings
+        auto = dict(zip(("bandwidth_hz", "observer_hz"), AUTO_HZ[self.model.n_bodies], strict=True))
+        auto = {k: v for k, v in auto.items() if not getattr(s, k)}
+        if auto:
+            # 0 = from the model: resolved into (a copy of) the settings, so the design, the trace's metadata
+            # and tune's starting point all see the number
+            s = self.settings = dataclasses.replace(s, **auto)
+            self._auto += list(auto)
         key = tuple(s.as_dict().values())
         if self._design_for == key:
             return
@@ -205,25 +224,26 @@ class Mbc(Controller):
         self._Mp = d.F @ (np.eye(na) - d.L @ d.H)
         self._Np = d.F @ d.L
         self._n = n
+        # the cycle as two dot products: s' = W [s, y_pos, y_vel, u_prev]; u = (uff + K xref) - Kf s'
+        self._W = np.ascontiguousarray(np.column_stack([self._Mp, self._Np, d.G]))
+        self._Kf = np.concatenate([d.K, -d.gd])
         self._design_for = key
 
     def reset(self) -> None:
         self._ensure_design()
         na = self._n + 2
-        self._s = np.zeros(na)  # s(k|k-1): plant state, d, d'
+        self._z = np.zeros(na + 3)  # [s(k|k-1) (plant state, d, d'), y_pos, y_vel, u_prev]
+        self._s = self._z[:na]  # a view: the estimate lives inside the cycle's input vector
         self._tmp = np.zeros(na)
         self._started = False
         self._u_prev = 0.0  # net command sent last cycle (acting now)
         self._fk = 0.0  # the friction compensation in it
         self._k = 0  # cycle index into the prepared table
 
-    def prepare(self, profile: Any, times: np.ndarray) -> None:
-        """Compute the feed-forward for the whole run ahead (the servo loop calls this once, after reset,
-        with the run's cycle times; step k then uses row k)."""
+    def feedforward(self, profile: Any, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The feed-forward for a run at ``times``: the linear part's effort and the known forces, row k for
+        the command computed at times[k] (acting over the next cycle but one, after the transport delay)."""
         times = np.asarray(times, dtype=float)
-        if len(times) < 2:
-            self._table = None
-            return
         dt = self.dt
         delay = self.model.extra_delay / dt
         n_t = len(times)
@@ -238,17 +258,29 @@ class Mbc(Controller):
         else:
             uff = np.zeros(n_t)
         fk = self.model.held_known_forces(profile, tt) if s.friction_ff else np.zeros(n_t)
-        xref = self.model.reference_states(profile, times[0] + dt * (np.arange(n_t) + 1.0))
+        return uff, fk
+
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        """Compute the feed-forward for the whole run ahead (the servo loop calls this once, after reset,
+        with the run's cycle times; step k then uses row k)."""
+        times = np.asarray(times, dtype=float)
+        if len(times) < 2:
+            self._table = None
+            return
+        uff, fk = self.feedforward(profile, times)
+        xref = self.model.reference_states(profile, times[0] + self.dt * (np.arange(len(times)) + 1.0))
         r = profile.sample(times)[0]
-        self._table = (r, uff, fk, xref)
+        # the reference state enters the law only as K xref: folded into the feed-forward ahead of time
+        ffk = uff + xref @ self.d.K
+        self._table = (r.tolist(), ffk.tolist(), fk.tolist())
         self._k = 0
 
-    def _row(self, reference: Reference) -> tuple[float, float, np.ndarray]:
-        """(feed-forward effort of the linear part, known forces, reference state one cycle ahead)."""
+    def _row(self, reference: Reference) -> tuple[float, float]:
+        """(feed-forward of the linear part plus K times the reference state one cycle ahead, known forces)."""
         k = self._k
         tab = self._table
         if tab is not None and k < len(tab[0]) and abs(reference.position - tab[0][k]) <= 1e-12:
-            return float(tab[1][k]), float(tab[2][k]), tab[3][k]
+            return tab[1][k], tab[2][k]
         dt = self.dt
         ext = _Extrapolated(reference)
         delay = self.model.extra_delay / dt
@@ -257,7 +289,7 @@ class Mbc(Controller):
         uff = float(self.model.held_effort(ext, tt)[0]) if s.feedforward else 0.0
         fk = float(self.model.held_known_forces(ext, tt)[0]) if s.friction_ff else 0.0
         xref = self.model.reference_states(ext, np.array([dt, 2 * dt]))[0]
-        return uff, fk, xref
+        return uff + float(xref @ self.d.K), fk
 
     def loop_matrix(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
         """The closed loop around a linear plant ``x(k+1) = A x(k) + B u(k-1)``, ``y = C x`` (table position
@@ -291,17 +323,18 @@ class Mbc(Controller):
             s[:n:2] = feedback.position
             s[1:n:2] = feedback.velocity
             self._started = True
-        uff, fk, xref = self._row(reference)
+        ffk, fk = self._row(reference)
         # s(k+1|k) from s(k|k-1), the sample y(k) and the command acting over [k, k+1]
-        tmp = self._tmp
-        np.dot(self._Mp, s, out=tmp)
-        tmp += self._Np[:, 0] * feedback.position
-        tmp += self._Np[:, 1] * feedback.velocity
-        tmp += self.d.G * self._u_prev
-        s[:] = tmp
-        # the command acts over [k+1, k+2]: feedback on the state predicted at k+1, d over that cycle
-        e = xref - s[:n]
-        u_net = uff + float(np.dot(self.d.K, e)) + self.d.gd[0] * s[n] + self.d.gd[1] * s[n + 1]
+        z = self._z
+        na = n + 2
+        z[na] = feedback.position
+        z[na + 1] = feedback.velocity
+        z[na + 2] = self._u_prev
+        np.dot(self._W, z, out=self._tmp)
+        s[:] = self._tmp
+        # the command acts over [k+1, k+2]: feedback K (xref - s) on the state predicted at k+1, and the
+        # disturbance over that cycle cancelled (gd)
+        u_net = ffk - float(np.dot(self._Kf, s))
         self._u_prev = u_net
         self._fk = fk
         self._k += 1

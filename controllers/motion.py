@@ -140,6 +140,11 @@ class Trajectory:
         self.arrived = True
         self._otg = self._in = self._out = None
 
+    @property
+    def stopping(self) -> bool:
+        """A controlled stop is under way."""
+        return self._moving and self._in.control_interface == ruckig.ControlInterface.Velocity
+
     # -- one cycle ---------------------------------------------------------------------------------------
     def next(self) -> Reference:
         """The reference of the next cycle."""

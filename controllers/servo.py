@@ -168,6 +168,8 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
+    #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
+    jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
 
 def run(
@@ -330,12 +332,12 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
         for k in range(n):
             if request.signum:
                 raise _Interrupted  # at a cycle boundary: no frame is half-handled
-            if pacer is not None:
-                pacer.wait(k)
             j = k - base
-            if j == REF_CHUNK:  # the next chunk of references (bounded memory for any run length)
+            if j == REF_CHUNK:  # the next chunk of references (bounded memory), before the deadline wait
                 plan.load(k)
                 refs, base, j = plan.refs, k, 0
+            if pacer is not None:
+                pacer.wait(k)
             for i, ch in enumerate(channels):
                 fb = sample_axis(ch, k)
                 pr, vr, ar, jr = refs[i]
@@ -636,9 +638,9 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
-    if last is None or "_jump" not in ch.__dict__:
-        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
-    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if last is None:
+        ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
@@ -711,30 +713,6 @@ def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
             if code is None and getattr(faulted, "last_emcy", None):
                 code = faulted.last_emcy[0]
             fault.error_code = code
-
-
-#: states a stopping drive passes through (Fault Reaction Active ends in Fault at the next cycle)
-_STILL_CHANGING = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
-
-
-def _stop_cycle(channels: Sequence[Channel]) -> bool:
-    """One zero-effort cycle of every axis during a stop; False when no axis could be cycled."""
-    alive = False
-    for ch in channels:
-        axis = ch.axis
-        try:
-            axis.read()
-            alive = True
-            if getattr(axis, "lost_cycles", 0) and hasattr(axis, "refresh_state"):
-                _quietly(axis.refresh_state)  # a bridged sample carries a stale statusword: ask by SDO
-        except AxisError:
-            # no sample (TPDOs gone): ask the drive by SDO
-            if hasattr(axis, "refresh_state") and _quietly(axis.refresh_state) is not None:
-                alive = True
-        except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
-            pass
-        _quietly(axis.write, 0.0)
-    return alive
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,6 +66,9 @@ EMCY_KEPT = 32
 #: the mapping drivectl configures: RPDO1 controlword + target torque; TPDO1 statusword + position;
 #: TPDO2 velocity + torque actual (48 bits each, synchronous, transmission type 1)
 RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
+#: the compact mapping (``bus.pdo_mapping = "compact"``, tools/bus_budget.py): one 8-byte TPDO with statusword,
+#: position and torque actual; the velocity derived on the host from two positions (as SimAxis does)
+COMPACT_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),)
 TPDO_ENTRIES = (
     ((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),
     ((cia402.VELOCITY_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),
@@ -121,6 +125,7 @@ class CanopenAxis:
         rpdo_timeout_ms: int | None = None,
         max_effort: float = math.inf,
         last_resort: str = "nmt-reset",
+        mapping: str = "full",
     ):
         self.name = name
         self.dt = dt
@@ -178,13 +183,18 @@ class CanopenAxis:
         self._controlword = 0
         self._rpdo_cob = RPDO_BASE[0] + node_id
         self._rpdo = PdoLayout.from_entries(od, RPDO_ENTRIES)
-        self._tpdo = [PdoLayout.from_entries(od, e) for e in TPDO_ENTRIES]
-        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(TPDO_ENTRIES))]
-        self._fresh = [False] * len(TPDO_ENTRIES)
-        self._raw = [(0, 0), (0, 0)]
+        if mapping not in ("full", "compact"):
+            raise ValueError(f"axis {name}: mapping: expected full or compact, got {mapping!r}")
+        self.mapping = mapping
+        self._tpdo_entries = COMPACT_TPDO_ENTRIES if mapping == "compact" else TPDO_ENTRIES
+        self._tpdo = [PdoLayout.from_entries(od, e) for e in self._tpdo_entries]
+        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(self._tpdo_entries))]
+        self._fresh = [False] * len(self._tpdo_entries)
+        self._raw = [(0, 0, 0)] if mapping == "compact" else [(0, 0), (0, 0)]
+        self._prev_counts: tuple[int, int] | None = None  # compact: (counts, cycle) of the last sample
         # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
         # reset does not stack a second handler per TPDO (each would count a late frame again)
-        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(TPDO_ENTRIES))]
+        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo_entries))]
         self._arrived = threading.Event()
         self._last_heartbeat = 0
         self.heartbeat_state: int | None = None
@@ -208,7 +218,16 @@ class CanopenAxis:
     def connect(self) -> None:
         """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
         self._boot()
-        self._check_identity()
+        # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
+        # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
+        # retries of canopen's client (0.3 s each) for this one exchange
+        sdo = self.node.sdo
+        retries = sdo.MAX_RETRIES
+        sdo.MAX_RETRIES = max(retries, 3)
+        try:
+            self._check_identity()
+        finally:
+            sdo.MAX_RETRIES = retries
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)
@@ -227,8 +246,10 @@ class CanopenAxis:
         self.power = cia402.decode_statusword(self.statusword)
         self.state_fresh, self.state_source = True, "SDO"
         self._controlword = self.master.controlword(self.power)
-        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(
-            self._sdo(cia402.POSITION_ACTUAL)), 0.0)
+        counts = self._sdo(cia402.POSITION_ACTUAL)
+        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
+        if self.mapping == "compact":
+            self._prev_counts = (counts, self.clock.cycle)
         self.lost_cycles = 0
         self._rebooted = False
         self._consumed = self.clock.cycle
@@ -236,7 +257,13 @@ class CanopenAxis:
         self._connected = True
 
     def _wait(self, event: threading.Event, what: str) -> None:
-        # in lockstep the reply was delivered during the send; otherwise wait for the notifier
+        # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
+        # comes some tens of ms after the reset); otherwise wait for the notifier
+        if self.lockstep:
+            for _ in range(round(self.timeout / self.dt)):
+                if event.is_set():
+                    break
+                self.network.lockstep.advance(self.dt)
         if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
 
@@ -257,6 +284,22 @@ class CanopenAxis:
 
     def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
         what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
+        if getattr(self, "_awaiting_boot", False):
+            # a reset we saw another master send: the drive answers once it has booted (tens of ms)
+            for _ in range(round(self.timeout / self.dt)):
+                if not self._awaiting_boot:
+                    break
+                if self.lockstep:
+                    self.network.lockstep.advance(self.dt)
+                else:
+                    time.sleep(self.dt)
+            self._awaiting_boot = False
+        if self._connected and self.heartbeat_state == NmtState.STOPPED:
+            # a Stopped drive answers no SDO (CiA 301): Pre-operational first (no PDO there either)
+            self._nmt_own = True
+            self._sent_stop = False
+            self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
         try:
             var = self.node.sdo[index] if sub is None else self.node.sdo[index][sub]
             if value is None:
@@ -313,7 +356,8 @@ class CanopenAxis:
         node = self.node
         node.rpdo.read()
         node.tpdo.read()
-        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE), (node.tpdo, TPDO_ENTRIES, TPDO_BASE)):
+        for maps, wanted, base in ((node.rpdo, (RPDO_ENTRIES,), RPDO_BASE),
+                                   (node.tpdo, self._tpdo_entries, TPDO_BASE)):
             for n, pdo in maps.map.items():
                 pdo.clear()
                 if n <= len(wanted):
@@ -376,6 +420,7 @@ class CanopenAxis:
         if not self._connected:
             return
         if state == 0:
+            self._awaiting_boot = False
             self._rebooted = True  # a boot-up while we run the drive: it reset by itself
         elif state == NmtState.OPERATIONAL:
             self._seen_operational = True
@@ -409,6 +454,10 @@ class CanopenAxis:
             names = {int(c): c.name.replace("_", " ").lower() for c in NmtCommand}
             self._foreign = (FaultKind.FOREIGN_NMT, f"NMT {names.get(data[0], f'0x{data[0]:02X}')} to "
                              f"{'all nodes' if data[1] == 0 else f'node {data[1]}'} from another master")
+            if data[0] == NmtCommand.STOP:
+                self.heartbeat_state = int(NmtState.STOPPED)  # it will not answer SDO (see _sdo)
+            elif data[0] in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
+                self._awaiting_boot = True  # it answers no SDO until its boot-up (see _sdo)
 
     def _on_emcy(self, entry: canopen.emcy.EmcyError) -> None:
         self.last_emcy = (entry.code, self.clock.cycle)
@@ -453,13 +502,19 @@ class CanopenAxis:
             self.lost_cycles = 0
             for i in range(len(fresh)):
                 fresh[i] = False
-            (sw, counts), (vel_counts, _torque) = self._raw
+            enc = self.encoder
+            if self._prev_counts is None:
+                (sw, counts), (vel_counts, _torque) = self._raw
+                velocity = enc.from_counts(vel_counts)
+            else:  # compact: the velocity from this position and the last one received (as SimAxis derives it)
+                sw, counts, _torque = self._raw[0]
+                velocity = enc.velocity(counts, self._prev_counts[0], (cycle - self._prev_counts[1]) * self.dt)
+                self._prev_counts = (counts, cycle)
             self.statusword = sw
             self.power = cia402.decode_statusword(sw)
             self.state_fresh, self.state_source = True, "TPDO"
             self._controlword = self.master.controlword(self.power)
-            enc = self.encoder
-            fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), enc.from_counts(vel_counts))
+            fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), velocity)
             return fb
         # no (complete) sample: bridge the cycle by extrapolating the last one; too many in a row is a fault
         self.lost_cycles += 1
@@ -477,7 +532,7 @@ class CanopenAxis:
     def torque_actual(self) -> float:
         """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""
         try:
-            return self.scale.from_permille(self._raw[1][1])
+            return self.scale.from_permille(self._raw[0][2] if self.mapping == "compact" else self._raw[1][1])
         except (IndexError, TypeError):
             return math.nan
 
@@ -508,11 +563,18 @@ class CanopenAxis:
         0x6007, stops its power stage. The drive's reply comes by SDO after NMT Pre-operational
         (:meth:`refresh_state_outside_operational`); a Stopped node need not answer SDO."""
         self._nmt_own = True
+        self._sent_stop = True
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.STOP, self.node_id]))
 
     def refresh_state_outside_operational(self) -> PowerState:
         """The statusword by SDO; if the drive is NMT Stopped and does not answer, NMT Pre-operational
-        first (SDO works there, PDOs still do not)."""
+        first (SDO works there, PDOs still do not). Known Stopped (by our NMT Stop or its heartbeat): Pre-operational
+        at once (a conforming drive answers no SDO in Stopped, CiA 301; waiting for the SDO timeout costs 0.6 s)."""
+        if getattr(self, "_sent_stop", False):
+            self._sent_stop = False
+            self._nmt_own = True
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+            return self.refresh_state()
         try:
             return self.refresh_state()
         except AxisError:

@@ -14,6 +14,7 @@ import itertools
 import logging
 import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 import can
@@ -142,6 +143,15 @@ class Lockstep:
     def __init__(self) -> None:
         self.networks: list[LockstepNetwork] = []
         self._settling = False
+        #: the devices' own clocks (emulated drives): advance(seconds) lets simulated time pass
+        self.clocks: list[Callable[[float], None]] = []
+
+    def advance(self, seconds: float) -> None:
+        """Let ``seconds`` of simulated time pass on every device clock (a master waiting for a boot-up:
+        in lockstep nothing else makes time go on), then deliver what that sent."""
+        for clock in list(self.clocks):
+            clock(seconds)
+        self.settle()
 
     def settle(self) -> None:
         """Deliver every pending frame to its network until all buses are quiet."""
@@ -169,8 +179,9 @@ class LockstepNetwork(canopen.Network):
         self._recv = bus.recv
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
-        #: every received frame is checked before canopen's dispatch (driver/frame_guard.py)
-        self.frame_guard = FrameGuard()
+        #: every received frame is checked before canopen's dispatch (driver/frame_guard.py); None on an
+        #: emulated drive's network (the drive checks its frames itself, with CiA 301's EMCY reactions)
+        self.frame_guard: FrameGuard | None = FrameGuard()
         self.handler_errors = 0
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
@@ -200,7 +211,12 @@ class LockstepNetwork(canopen.Network):
             got = True
             if log is not None:
                 log.on_message_received(msg)
-            if not msg.is_error_frame and self.frame_guard.accept(msg.arbitration_id, msg.data, msg.is_remote_frame):
+            guard = self.frame_guard
+            if msg.is_remote_frame and (guard is None or msg.arbitration_id in self.__dict__.get(
+                    "remote_subscribers", {})):
+                deliver_remote(self, msg.arbitration_id)  # an emulated drive's RTR handler, never as data
+            elif not msg.is_error_frame and (guard is None or guard.accept(msg.arbitration_id, msg.data,
+                                                                           msg.is_remote_frame)):
                 try:
                     notify(msg.arbitration_id, msg.data, msg.timestamp)
                 except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
@@ -218,6 +234,13 @@ class LockstepNetwork(canopen.Network):
         if self.bus is not None:
             self.bus.shutdown()
         self.bus = None
+
+
+def deliver_remote(network: canopen.Network, can_id: int) -> None:
+    """A remote frame (RTR) to the callbacks in ``network.remote_subscribers`` (canopen's notify() has no
+    RTR bit, so a remote frame handed to it would look like an empty data frame)."""
+    for callback in list(network.__dict__.get("remote_subscribers", {}).get(can_id, ())):
+        callback(can_id)
 
 
 class GuardedListener(canopen.network.MessageListener):

@@ -30,6 +30,10 @@ class Encoder:
     def from_counts(self, counts: int) -> float:
         return counts * self.resolution
 
+    def velocity(self, counts: int, counts_before: int, seconds: float) -> float:
+        """The velocity between two positions in counts ``seconds`` apart (host-derived, compact mapping)."""
+        return (counts - counts_before) * self.resolution / seconds
+
     def quantise(self, metres: float) -> float:
         """What the encoder reports for a true position: the nearest whole count, in metres."""
         return round(metres / self.resolution) * self.resolution

@@ -61,6 +61,9 @@ class DriveModel:
         self.applied = 0.0  # effort acting during the current cycle
         self.syncs = 0
         self._last_cw = 0
+        # False while no mode is selected that this drive runs (0x6060 = 0, CiA 402: no torque then);
+        # SimAxis has no 0x6060 and is always in cyclic synchronous torque
+        self.mode_ok = True
         #: switches and mechanical stops (controllers/homing.py EmulatorIO): 0x60FD and hard stops
         self.io = io
 
@@ -99,9 +102,24 @@ class DriveModel:
         """0x60FD: limit and home switches at the current position (0 without switches)."""
         return self.io.inputs(self.position) if self.io is not None else 0
 
+    def free_cycle(self, controlword: int, setpoint: float) -> None:
+        """One cycle of the drive's own clock with no SYNC (the master silent, or an SDO-only master):
+        the plant moves on under the effort applied, the controlword received since is taken."""
+        if self.syncs or self.applied:
+            self.plant.step(self.state, self.applied)
+            if self.io is not None and self.io.hard_stops is not None:
+                self._hard_stop(self.io.hard_stops)
+        self._take(controlword, setpoint)
+
+    @property
+    def following(self) -> bool:
+        """Statusword bit 12 in cyclic synchronous torque: the drive follows the target torque
+        (Operation Enabled, no halt, a mode it runs)."""
+        return self.power is PowerState.OPERATION_ENABLED and not self._last_cw & HALT_BIT and self.mode_ok
+
     def _take(self, controlword: int, setpoint: float) -> None:
         self._apply_controlword(controlword)
-        enabled = self.power is PowerState.OPERATION_ENABLED and not controlword & HALT_BIT
+        enabled = self.power is PowerState.OPERATION_ENABLED and not controlword & HALT_BIT and self.mode_ok
         self.applied = setpoint if enabled else 0.0
 
     def _apply_controlword(self, cw: int) -> None:

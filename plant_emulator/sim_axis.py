@@ -37,6 +37,7 @@ class SimAxis:
         initial_position: float = 0.0,
         enabled: bool = False,
         io: object = None,
+        derived_velocity: bool = False,
     ):
         self.name = name
         self.plant = plant
@@ -51,6 +52,9 @@ class SimAxis:
         self._controlword = self.master.controlword(power)  # chosen from the last statusword
         self._sent_controlword = self._controlword if enabled else 0  # what the last "RPDO" carried
         self._written = 0.0
+        # the compact mapping carries no velocity: the master derives it from two positions, so do we
+        self._prev_counts: int | None = (self.encoder.to_counts(self.drive.position)
+                                         if derived_velocity and self.encoder is not None else None)
 
     @property
     def state(self) -> PlantState:
@@ -89,6 +93,11 @@ class SimAxis:
         enc = self.encoder
         if enc is None:
             return Feedback(t, d.position, d.velocity)
+        if self._prev_counts is not None:
+            counts = enc.to_counts(d.position)
+            velocity = enc.velocity(counts, self._prev_counts, self.dt)
+            self._prev_counts = counts
+            return Feedback(t, enc.from_counts(counts), velocity)
         return Feedback(t, enc.quantise(d.position), enc.quantise(d.velocity))
 
     def write(self, effort: float) -> None:

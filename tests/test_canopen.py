@@ -169,6 +169,10 @@ def test_nmt_reset_gives_boot_up_and_stops_the_tpdos(bench):
     seen = []
     bench.master.subscribe(HEARTBEAT_BASE + 1, lambda cob, data, ts: seen.append(bytes(data)))
     bench.master.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, 1]))
+    assert seen == [] and drive.nmt is NmtState.INITIALISING  # a drive boots for a while (50 ms default)
+    bench.lockstep.advance(0.049)
+    assert seen == []
+    bench.lockstep.advance(0.001)
     assert seen == [b"\x00"] and drive.nmt is NmtState.PRE_OPERATIONAL
     with pytest.raises(AxisError, match="unexpected boot-up") as info:
         ax.read()  # the boot-up of a drive the master runs is a fault of its own, raised once
@@ -276,6 +280,7 @@ def test_a_node_reset_restores_every_parameter_the_master_wrote(bench):
     ax.node.sdo[cia402.PRODUCER_HEARTBEAT_TIME].raw = 250
     assert (drive.drive.quick_stop_option, drive.max_torque, drive._heartbeat_ms) == (6, 250, 250)
     drive.reset()
+    bench.lockstep.advance(0.05)  # booted again (no SDO while it initialises)
     assert drive.drive.quick_stop_option == defaults[cia402.QUICK_STOP_OPTION] != 6
     assert drive.max_torque == defaults[cia402.MAX_TORQUE] != 250
     assert drive._heartbeat_ms == defaults[cia402.PRODUCER_HEARTBEAT_TIME] != 250
@@ -362,7 +367,8 @@ def test_bus_log_reads_back_with_the_sync_pdo_sequence(tmp_path, suffix, capsys)
                "--bus-log", str(log)])
     assert rc == 0
     ids = [m.arbitration_id for m in can.LogReader(str(log))]
-    assert ids[0] == HEARTBEAT_BASE + 1  # the drive's boot-up
+    # the master's NMT reset (the drive is still booting from power-on), then the drive's boot-up
+    assert ids[:2] == [NMT_COB_ID, HEARTBEAT_BASE + 1]
     assert NMT_COB_ID in ids and 0x601 in ids and 0x581 in ids  # NMT, SDO configuration
     assert HEARTBEAT_BASE + 0x7F in ids  # the master's own heartbeat, from the first SYNC
     first_sync = ids.index(0x80)

@@ -137,3 +137,19 @@ def test_repetitions_over_the_bus_equal_simaxis(tmp_path, capsys):
     for k in (1, 2):
         a, b = (Trace.read(tmp_path / d / f"x-rep{k:02d}.csv") for d in ("bus", "sim"))
         assert np.array_equal(a.pos, b.pos) and np.array_equal(a.effort, b.effort)
+
+
+def test_a_repetition_stopped_by_a_limit_reports_what_the_drive_said(tmp_path, capsys):
+    """The end state comes from the drive's reports after the stop, never a fixed sentence."""
+    from drivectl.tools.cli import main
+    from drivectl.tools.config import DEFAULT_CONFIG_TOML
+
+    cfg = tmp_path / "tight.toml"
+    cfg.write_text(DEFAULT_CONFIG_TOML.replace("following_error_m = 0.001       # window",
+                                               "following_error_m = 1e-7        # window", 1))
+    rc = main(["--config", str(cfg), "trace", "--axis", "x", "--repeat", "2", "--learn", "--no-plot",
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1, err
+    assert err[-1].startswith("drivectl: stopped: ") and "following error" in err[-1]
+    assert "quick stop (x Switch On Disabled after" in err[-1] and err[-1].endswith("traces kept")

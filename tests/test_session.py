@@ -101,6 +101,22 @@ def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
         lo, hi = x.limits.position
         assert j.done and x.state == "servo"  # stopped at the limit, no fault
         assert hi - 0.0011 < x.position < hi
+        held = x.jog(0.01)  # the button still held at the limit: nothing moves, nothing raises
+        assert held.done and "at the soft limit already" in held.detail
+        x.jog(-0.01)  # away from it is fine
+        m.advance(0.1)
+        assert x.velocity < 0
+
+
+def test_a_jog_renewed_while_its_dead_man_stop_is_under_way_moves_on(machine):
+    x = machine.axes["x"]
+    x.enable()
+    j = x.jog(0.02)
+    machine.advance(0.215)  # 0.2 s: the dead man began the stop (about 40 ms long); the axis decelerates
+    assert 0 < x.velocity < 0.02 and not j.done
+    assert x.jog(0.02) is j
+    machine.advance(0.15)
+    assert x.velocity == pytest.approx(0.02, rel=0.05)
 
 
 def test_moves_outside_the_limits_are_refused_before_anything_moves(machine):
@@ -436,3 +452,24 @@ def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, c
     assert m.unconfirmed == ["x"]
     err = capsys.readouterr().err
     assert "axis x: the drive last reported Operation Enabled after the disable: it may still be powered" in err
+
+
+def test_identify_refuses_an_axis_away_from_its_start_without_approach(monkeypatch):
+    """identify opens the axis where its identification profile starts; a drive standing elsewhere
+    (as across processes) is shown the approach and, with --no-approach, refused before it moves."""
+    from drivectl.tools import machine as machine_module
+    from drivectl.tools.commission import identify_axis
+    from drivectl.tools.config import load_config
+
+    opened = []
+    real = machine_module.open_machine
+
+    def elsewhere(cfg, names, **kw):
+        kw["start"] = {n: p + 0.005 for n, p in kw["start"].items()}  # 5 mm off
+        opened.append(real(cfg, names, **kw))
+        return opened[-1]
+
+    monkeypatch.setattr(machine_module, "open_machine", elsewhere)
+    with pytest.raises(LimitError, match=r"to its profile's start .*--no-approach; nothing moved"):
+        identify_axis(load_config(None), "x", approach=False)
+    assert opened and opened[0].drives["x"].drive.power is PowerState.SWITCH_ON_DISABLED

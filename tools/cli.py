@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_tune_parser(sub)
     add_emulate_parser(sub)
     add_explain_parser(sub)
+    from drivectl.tools.conformance import add_conformance_parser
+
+    add_conformance_parser(sub)
     from drivectl.tools.shell import add_shell_parser
 
     add_shell_parser(sub)
@@ -121,6 +124,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if request.signum and rc not in (EXIT_OK, 130, 143):
             return exit_code(request)  # it ended early because of the signal, and said why in its one line
         return rc
+    except BrokenPipeError:  # `drivectl config show | head`: the reader left; nothing more to say to it
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except KeyboardInterrupt:
         print(f"drivectl: {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -167,6 +175,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.emulate import cmd_emulate
 
             return cmd_emulate(args)
+        if args.command == "conformance":
+            from drivectl.tools.conformance import cmd_conformance
+
+            return cmd_conformance(args)
         if args.command == "shell":
             from drivectl.tools.shell import cmd_shell
 
@@ -290,9 +302,13 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         for ch in channels:
             ch.meta["bus"] = bus_text
     try:
+        from drivectl.tools.bus_budget import machine_load
+
+        load_text = "" if args.sim else f", {machine_load(cfg, names).text()}"
+
         def started(cycles: int) -> None:
-            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text} "
-                  "(Ctrl-C stops safely)", file=sys.stderr, flush=True)
+            print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text}"
+                  f"{load_text} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
 
         from drivectl.controllers.servo import plan_run
         from drivectl.tools.approach import consent, plan_approach, where_axes_stand

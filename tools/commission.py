@@ -85,6 +85,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     print(show_text(cfg), end="")
+    from drivectl.tools.bus_budget import show_lines
+
+    print("\n".join(show_lines(cfg)))
     return 0
 
 

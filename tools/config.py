@@ -47,9 +47,9 @@ rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): 
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
-# controller = "mbc" (no settings) tracks the circle within 0.12 um against ASMC's 0.19, but with a 25 %
-# rougher effort (1.32 against 1.05 N per cycle): by tune's cost J the two are even, so x keeps the paper's.
-# With an unmodelled Stribeck effect mbc holds 11 um against 38 (bench/precision.py, README "Precision").
+# controller = "mbc" (no settings) tracks the circle within 0.10 um against ASMC's 0.19, but with a 28 %
+# rougher effort (1.34 against 1.05 N per cycle): by tune's cost J ASMC is ahead, so x keeps the paper's.
+# With an unmodelled Stribeck effect and noise mbc holds 11 um against 38 (bench/precision.py, README).
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits
@@ -121,6 +121,8 @@ class BusConfig:
     host: str = "127.0.0.1"  # socketcand only
     port: int = 29536  # socketcand only
     options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
+    load_ceiling_pct: float = 70.0  # the most of the bitrate the cyclic frames may take (tools/bus_budget.py)
+    pdo_mapping: str = "auto"  # full | compact | auto: full where it fits the ceiling, else compact (bus_budget.py)
 
     def open_kwargs(self) -> dict[str, Any]:
         """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
@@ -136,7 +138,8 @@ class ConfigError(ValueError):
 
 def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     """The [bus] table: any interface python-can knows, its options passed through to ``can.Bus``."""
-    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options"}
+    extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options", "load_ceiling_pct",
+                            "pdo_mapping"}
     if extra:
         raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
     from drivectl.driver.network import INTERFACES, RESERVED_OPTIONS
@@ -171,8 +174,14 @@ def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     if options and interface == "virtual":
         raise ConfigError(f"{src}: bus.options: the virtual bus takes no options (it carries the in-process "
                           f"emulated drives in lockstep); remove them or choose the adapter's interface")
+    ceiling = _number(src, "bus.load_ceiling_pct", bus_raw.get("load_ceiling_pct", 70.0), positive=True)
+    if ceiling > 100:
+        raise ConfigError(f"{src}: bus.load_ceiling_pct: a per cent of the bitrate, 0 < x <= 100, got {ceiling:g}")
+    mapping = bus_raw.get("pdo_mapping", "auto")
+    if mapping not in ("full", "compact", "auto"):
+        raise ConfigError(f"{src}: bus.pdo_mapping: expected \"auto\", \"full\" or \"compact\", got {mapping!r}")
     return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
-                     dict(options))
+                     dict(options), ceiling, mapping)
 
 
 @dataclass(frozen=True)

@@ -59,6 +59,11 @@ def add_emulate_parser(sub: Any) -> None:
                    "clock (python-can Logger, format by suffix: .asc, .blf, .log, .csv, .trc)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault TIME s after the drive is enabled (repeatable; see README, Faults)")
+    e.add_argument("--boot-delay-ms", type=float, default=None, metavar="MS",
+                   help="boot-up message this long after power-on or an NMT reset (default 50 ms)")
+    e.add_argument("--sync-loss-ms", type=float, default=None, metavar="MS",
+                   help="no SYNC for this long: the drives run on their own clock (default: the master "
+                        "heartbeat consumer time, 300 ms; about two cycles for a master paced in real time)")
 
 
 class EmulateArgError(ValueError):
@@ -147,10 +152,11 @@ def _open_emulator_bus(args: argparse.Namespace) -> tuple[can.BusABC, str, str]:
 
 
 def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
+    from drivectl.driver import cia402
     from drivectl.driver.network import BusLog, log_sent_frames
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
-    from drivectl.plant_emulator.node402 import EmulatedDrive
+    from drivectl.plant_emulator.node402 import EmulatedDrive, deliver
     from drivectl.tools.config import load_config
     from drivectl.tools.machine import axis_profile, plant_specs
 
@@ -174,6 +180,15 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         bus.shutdown()
         raise EmulateArgError(f"--bus-log {args.bus_log}: cannot write: {exc}") from None
     net = canopen.Network(bus)  # no notifier: this process pumps its own bus, in order
+    for flag, value in (("--boot-delay-ms", args.boot_delay_ms), ("--sync-loss-ms", args.sync_loss_ms)):
+        if value is not None and not (value >= 0 and value < 1e6):
+            bus.shutdown()
+            raise EmulateArgError(f"--{flag.lstrip('-')}: expected a number of ms >= 0, got {value!r}")
+    clock: dict[str, float] = {}
+    if args.boot_delay_ms is not None:
+        clock["boot_delay_ms"] = args.boot_delay_ms
+    if args.sync_loss_ms is not None:
+        clock["sync_loss_ms"] = args.sync_loss_ms
     drives = []
     for i, name in enumerate(names):
         ac = cfg.axis(name)
@@ -182,31 +197,40 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
                               resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
                               initial_position=start, faults=injectors[name] if faults else None,
-                              io=ac.emulator)
+                              io=ac.emulator, **clock)
         drives.append(drive)
     if log is not None:
         log_sent_frames(net, log)  # stamped when sent, on the clock received frames are restamped with
     for drive in drives:
         drive.boot()
+    # power-on: the drives are announced once booted (their boot-up sent), so a master that connects on
+    # the announcement finds them answering, not a boot-up from before its reset command
+    import time
+
+    booting_until = time.monotonic() + 2.0
+    while any(d.nmt == 0 for d in drives) and time.monotonic() < booting_until and not stop.signum:
+        for drive in drives:
+            drive.serve()
+        time.sleep(0.002)
     nodes = ", ".join(f"{n} (node {cfg.axis(n).node_id}, {specs[n].name})" for n in names)
     print(f"emulating {nodes} on {where}", flush=True)
     print(f"point a master at it with: {hint}", flush=True)
     try:
         while not stop.signum:
             msg = bus.recv(0.01)
+            # the frame first, then the drives' clocks up to now: a reset that arrived before a boot-up
+            # fell due restarts the boot (the other order would send a stale boot-up after the reset)
+            if msg is not None and not any(inj.deaf for inj in injectors.values()):
+                # (master-dead injected: nothing from the master reaches the drives any more)
+                if log is not None:
+                    log.on_message_received(msg)
+                deliver(net, msg)
             for drive in drives:
-                if drive.check_master():
-                    print(f"node {drive.node_id}: master heartbeat lost: drive stopped "
+                code = drive.check_master()
+                if code:
+                    print(f"node {drive.node_id}: master lost ({cia402.error_text(code)}): drive stopped "
                           f"({drive.drive.power.value}, 0x603F = 0x{drive.drive.error_code:04X})",
                           file=sys.stderr, flush=True)
-            if msg is None:
-                continue
-            if any(inj.deaf for inj in injectors.values()):
-                continue  # master-dead injected: nothing from the master reaches the drives any more
-            if log is not None:
-                log.on_message_received(msg)
-            if not msg.is_error_frame:
-                net.notify(msg.arbitration_id, msg.data, msg.timestamp)
     finally:
         for drive in drives:
             drive.close()

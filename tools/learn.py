@@ -575,12 +575,19 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
     for p in written:
         print(f"wrote {p}")
     if not result.ok:
+        # the end state as the drives reported it after the stop, never a fixed sentence
+        from drivectl.controllers.safe_stop import all_confirmed, end_state_line
+
+        f = result.fault
+        ended = f"quick stop ({end_state_line(f.safe_state, f.safe_after)})" if f is not None else "quick stop"
         if result.stop is StopReason.INTERRUPTED:
-            print(f"drivectl: interrupted after {done} repetition(s); axis quick-stopped and disabled, traces kept",
-                  file=sys.stderr)
+            if not result.enabled:
+                ended = "before the axes were enabled: nothing moved"
+            print(f"drivectl: interrupted after {done} repetition(s); {ended}, traces kept", file=sys.stderr)
             return 128 + request.signum if request.signum else 130
-        print(f"drivectl: stopped: {result.detail}; axis quick-stopped and disabled, traces kept", file=sys.stderr)
-        return 3 if result.stop is StopReason.FAULT else 1
+        print(f"drivectl: stopped: {result.detail}; {ended}, traces kept", file=sys.stderr)
+        unconfirmed = f is not None and not all_confirmed(f.safe_after)
+        return 3 if (result.stop is StopReason.FAULT or unconfirmed) else 1
     return 0
 
 

@@ -186,6 +186,11 @@ def open_machine(
             raise FaultSpecError(f"--fault {spec}: axis {spec.axis!r} is not in this run ({', '.join(names)})")
     start = start or {}
     specs = plant_specs(cfg, names, plant, effects)
+    from drivectl.tools.bus_budget import check_bus_load, resolve_mapping
+
+    mapping = resolve_mapping(cfg, len(names))  # --sim derives the velocity as the bus mapping makes the master do
+    if not sim:
+        check_bus_load(cfg, names)  # over the ceiling: refused here, before any drive is configured or enabled
     dt = cfg.cycle_s
     if sim:
         if bus_log:
@@ -195,7 +200,8 @@ def open_machine(
             ac = cfg.axis(name)
             axes[name] = SimAxis(specs[name].build(dt), name=name, resolution=ac.encoder_m_per_count,
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
-                                 initial_position=start.get(name, 0.0), io=ac.emulator)
+                                 initial_position=start.get(name, 0.0), io=ac.emulator,
+                                 derived_velocity=mapping == "compact")
         return Machine(axes, specs, "sim (SimAxis, no bus)")
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)
@@ -235,6 +241,8 @@ def open_machine(
 def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
                      specs: dict[str, PlantSpec]) -> None:
     """One CanopenAxis per axis on ``net``, sharing one SYNC clock; each booted and configured."""
+    from drivectl.tools.bus_budget import resolve_mapping
+
     clock = SyncClock(net)
     for name in names:
         ac = cfg.axis(name)
@@ -242,7 +250,8 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
                            max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms,
-                           max_effort=ac.limits.max_effort, last_resort=ac.last_resort)
+                           max_effort=ac.limits.max_effort, last_resort=ac.last_resort,
+                           mapping=resolve_mapping(cfg, len(names)))
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)
@@ -323,6 +332,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
             session.drives[name] = drive
         for drive in session.drives.values():
             drive.boot()
+        lockstep.advance(0.1)  # power-on: the drives take some tens of ms to boot
         return session
     net = threaded_network(open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs()))
     session = BusSession(net, f"{b.interface}:{b.channel}", {}, False, [lambda: close_threaded(net)])

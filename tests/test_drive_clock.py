@@ -1,0 +1,174 @@
+"""Issue 19 point 1: the emulated drive's own clock (SYNC-locked, free-running when served and no SYNC
+comes), its boot-up delay, what reset communication restores, 0x6076 scaling and a long RPDO. The
+served drive is driven here with a simulated wall clock (``serve(now)``), so nothing waits."""
+
+from __future__ import annotations
+
+import struct
+
+import can
+import canopen
+import pytest
+
+from drivectl.driver import cia402
+from drivectl.driver.cia301 import NmtState
+from drivectl.driver.network import open_bus, unique_virtual_channel
+from drivectl.plant_emulator.models import load_plant
+from drivectl.plant_emulator.node402 import EmulatedDrive, deliver
+
+
+class Served:
+    """A drive served as `drivectl emulate` serves it (frames, then the clock), its time simulated."""
+
+    def __init__(self, **kw) -> None:
+        channel = unique_virtual_channel("clock")
+        self.bus = open_bus("virtual", channel)
+        self.master = open_bus("virtual", channel)
+        self.net = canopen.Network(self.bus)
+        self.drive = EmulatedDrive(self.net, 1, load_plant("rigid-x").build(0.001), rated_effort=100.0, **kw)
+        self.now = 0.0
+        self.reactions: list[int] = []
+        self.drive.boot()
+        self.serve(0.0)
+
+    def serve(self, dt: float) -> list[can.Message]:
+        """``dt`` s of wall time pass; the frames the master sent are delivered first. Returns what the
+        drive sent."""
+        while (msg := self.bus.recv(0)) is not None:
+            deliver(self.net, msg)
+        self.now += dt
+        code = self.drive.check_master(self.now)
+        if code:
+            self.reactions.append(code)
+        out = []
+        while (msg := self.master.recv(0)) is not None:
+            out.append(msg)
+        return out
+
+    def send(self, can_id: int, data: bytes) -> None:
+        self.master.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+
+    def sdo_write(self, index: int, sub: int, value: int, size: int) -> bytes:
+        cmd = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+        self.send(0x601, bytes([cmd, index & 0xFF, index >> 8, sub]) + value.to_bytes(size, "little",
+                                                                                     signed=value < 0).ljust(4, b"\0"))
+        answers = [m for m in self.serve(0.0) if m.arbitration_id == 0x581]
+        return bytes(answers[0].data)
+
+    def enable(self) -> None:
+        self.sdo_write(cia402.MODES_OF_OPERATION, 0, 10, 1)
+        self.send(0x000, b"\x01\x01")
+        for cw in (0x06, 0x0F, 0x0F):
+            self.send(0x201, struct.pack("<Hh", cw, 0))
+            self.send(0x080, b"")
+            self.serve(0.001)
+        assert self.drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+
+    def close(self) -> None:
+        self.drive.close()
+        self.bus.shutdown()
+        self.master.shutdown()
+
+
+@pytest.fixture
+def served():
+    s = Served()
+    s.serve(0.06)  # booted
+    yield s
+    s.close()
+
+
+def test_a_slow_master_is_not_taken_for_a_dead_one_and_a_silent_one_is_caught(served):
+    s = served
+    s.sdo_write(cia402.CONSUMER_HEARTBEAT_TIME, 1, (0x7F << 16) | 300, 4)
+    s.sdo_write(0x1400, 5, 2, 2)  # RPDO deadline 2 ms of drive time
+    s.enable()
+    # 1500 cycles at 90 cycles/s (11 ms of wall time each, some stalls of 150 ms): heartbeat every 100 SYNCs
+    for k in range(1500):
+        s.send(0x201, struct.pack("<Hh", 0x0F, 0))
+        s.send(0x080, b"")
+        if k % 100 == 0:
+            s.send(0x77F, b"\x05")
+        s.serve(0.150 if k % 400 == 399 else 0.011)
+    assert s.reactions == [] and s.drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+    # the master dies: no SYNC, no RPDO, no heartbeat. The drive's clock runs on after the consumer time
+    # (300 ms) and counts the whole gap: the RPDO deadline fires 2 ms of drive time after the last RPDO
+    t_dead = s.now
+    while not s.reactions and s.now - t_dead < 1.0:
+        s.serve(0.010)
+    assert s.reactions == [0x8250] and 0.29 <= s.now - t_dead <= 0.32
+    assert s.drive.drive.power is cia402.PowerState.SWITCH_ON_DISABLED
+
+
+def test_heartbeat_and_sdo_controlword_without_any_sync(served):
+    """No SYNC at all (scan, an SDO-only master): the heartbeat comes on the drive's own clock, and a
+    controlword written by SDO moves the power state."""
+    s = served
+    s.sdo_write(cia402.PRODUCER_HEARTBEAT_TIME, 0, 100, 2)
+    beats = [m for _ in range(100) for m in s.serve(0.01) if m.arbitration_id == 0x701]
+    assert len(beats) in (9, 10) and all(bytes(m.data) == bytes([NmtState.PRE_OPERATIONAL]) for m in beats)
+    s.sdo_write(cia402.CONTROLWORD, 0, 0x06, 2)
+    s.serve(0.01)
+    assert s.drive.drive.power is cia402.PowerState.READY_TO_SWITCH_ON
+
+
+def test_boot_up_delay_is_drive_time_and_zero_on_request():
+    s = Served(boot_delay_ms=0)
+    try:
+        assert s.drive.nmt is NmtState.PRE_OPERATIONAL  # at once
+        s.send(0x000, b"\x81\x01")
+        assert [m.arbitration_id for m in s.serve(0.0)] == [0x701]
+    finally:
+        s.close()
+    s = Served(boot_delay_ms=80)
+    try:
+        s.serve(0.070)
+        assert s.drive.nmt is NmtState.INITIALISING
+        assert [m.arbitration_id for m in s.serve(0.011)] == [0x701]
+    finally:
+        s.close()
+
+
+def test_reset_communication_restores_the_communication_area_only(served):
+    s = served
+    for index, sub, value, size in ((cia402.PRODUCER_HEARTBEAT_TIME, 0, 250, 2), (0x1800, 2, 5, 1),
+                                    (cia402.COMM_CYCLE_PERIOD, 0, 0, 4), (cia402.ABORT_CONNECTION_OPTION, 0, 1, 2)):
+        assert s.sdo_write(index, sub, value, size)[0] == 0x60
+    s.send(0x000, b"\x82\x01")
+    s.serve(0.06)
+    d = s.drive
+    assert (d._value(0x1017), d._value(0x1800, 2), d._value(0x1006)) == (0, 1, 1000)  # the EDS defaults
+    assert d._value(cia402.ABORT_CONNECTION_OPTION) == 1  # application area kept
+
+
+def test_rated_torque_written_scales_the_torque_and_a_long_rpdo_is_used_with_emcy_0x8220(served):
+    s = served
+    s.sdo_write(cia402.RATED_TORQUE, 0, 50_000, 4)  # 50 N rated instead of 100
+    s.enable()
+    s.send(0x201, struct.pack("<Hh", 0x0F, 100) + b"\x00\x00")  # 6 bytes for a 4-byte mapping
+    s.send(0x080, b"")
+    sent = s.serve(0.001)
+    assert s.drive.drive.applied == pytest.approx(5.0)  # 100 per mille of 50 N
+    emcy = [struct.unpack_from("<H", m.data)[0] for m in sent if m.arbitration_id == 0x81]
+    assert emcy == [0x8220] and s.drive.frames.counts["long-rpdo"] == 1
+
+
+def test_in_process_the_heartbeat_consumer_runs_on_the_drive_clock():
+    """Lockstep: the master stops (no SYNC, no heartbeat); the drive's own clock (Machine.let_drives_run)
+    counts the consumer time, 300 ms as drivectl configures it, and the drive stops with 0x8130."""
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    object.__setattr__(ac, "rpdo_timeout_ms", 0)  # no RPDO deadline: the heartbeat consumer alone
+    with open_machine(cfg, ["x"], faults=[]) as m:
+        ax, drive = m.axes["x"], m.drives["x"]
+        ax.enable()
+        for _ in range(5):
+            ax.read()
+            ax.write(0.0)
+        assert drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+        safe = m.let_drives_run(1000, until_safe=True)["x"]
+        assert drive.drive.error_code == cia402.HEARTBEAT_LOST_ERROR
+        assert 295 <= safe <= 305  # 300 ms after the master's last heartbeat (sent at its first SYNC)

@@ -168,6 +168,8 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
+    #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
+    jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
 
 def run(
@@ -636,9 +638,9 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
-    if last is None or "_jump" not in ch.__dict__:
-        ch.__dict__["_jump"] = JumpState()  # anew with last_position (a run, a move of the resident loop)
-    jump = position_jump(ch.__dict__["_jump"], pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if last is None:
+        ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "

@@ -35,13 +35,30 @@ following_time_s = 0.02
 """
 
 
+# every table and key a session, the run checks, the bus budget and the stop's escalation read
+EVERYTHING = DEFAULT_CONFIG_TOML.replace("clipped_warn = 0.01", "clipped_warn = 0.02", 1).replace(
+    "node_id = 2", 'node_id = 2\nlast_resort = "none"', 1).replace(
+    'interface = "virtual"', 'interface = "virtual"\npdo_mapping = "compact"\nload_ceiling_pct = 60', 1) + """
+[axes.z.motion]
+max_velocity_m_s = 0.05
+jog_deadman_s = 0.3
+[axes.z.homing]
+method = "switch"
+direction = "positive"
+hard_stop_effort = 2.0
+[axes.z.emulator]
+home_switch_m = 0.01
+hard_stops_m = [-0.2, 0.2]
+"""
+
+
 def _same(a, b) -> None:
     assert dataclasses.replace(a, source="") == dataclasses.replace(b, source="")
     for name in a.axes:
         assert a.axes[name].limits_from_drive == b.axes[name].limits_from_drive
 
 
-@pytest.mark.parametrize("text", [DEFAULT_CONFIG_TOML, SPARSE], ids=["embedded", "sparse"])
+@pytest.mark.parametrize("text", [DEFAULT_CONFIG_TOML, SPARSE, EVERYTHING], ids=["embedded", "sparse", "everything"])
 def test_config_show_loads_back_to_the_same_configuration(tmp_path, text):
     path = tmp_path / "m.toml"
     path.write_text(text)
@@ -49,7 +66,9 @@ def test_config_show_loads_back_to_the_same_configuration(tmp_path, text):
     shown = show_text(cfg)
     _same(cfg, parse_config(tomllib.loads(shown), "shown"))
     for key in ("max_lost_cycles", "rpdo_timeout_ms", "max_speed_m_s", "following_error_m", "position_m",
-                "max_effort", "eds", "encoder_m_per_count", "rated_effort", "node_id", "port", "host"):
+                "max_effort", "eds", "encoder_m_per_count", "rated_effort", "node_id", "port", "host",
+                "last_resort", "max_jump_m", "load_ceiling_pct", "pdo_mapping", "[checks]", "clipped_warn",
+                "motion]", "jog_deadman_s", "homing]"):
         assert key in shown, key
 
 

@@ -266,3 +266,4 @@ def test_transport_delay_cycles_from_the_trace():
         prepare(Trace(dict(tr.columns), {**tr.meta, "transport_delay_cycles": "2"}), spec, "x.csv")
     with pytest.raises(ExplainError, match="encoder_m_per_count"):
         prepare(Trace(dict(tr.columns), {**tr.meta, "encoder_m_per_count": "-1"}), spec, "x.csv")
+

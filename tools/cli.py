@@ -124,6 +124,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if request.signum and rc not in (EXIT_OK, 130, 143):
             return exit_code(request)  # it ended early because of the signal, and said why in its one line
         return rc
+    except BrokenPipeError:  # `drivectl config show | head`: the reader left; nothing more to say to it
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
     except KeyboardInterrupt:
         print(f"drivectl: {args.command}: interrupted", file=sys.stderr)
         return 130

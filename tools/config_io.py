@@ -11,6 +11,7 @@ taken from the drive stay taken from the drive).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import shutil
@@ -22,6 +23,8 @@ from typing import Any
 
 import tomlkit
 
+from drivectl.controllers.homing import HOMING_KEYS
+from drivectl.controllers.motion import MOTION_KEYS
 from drivectl.tools.config import DEFAULT_CONFIG_TOML, ConfigError, MachineConfig, parse_config
 
 
@@ -55,9 +58,15 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     bus["host"].comment("socketcand only")
     bus.add("port", b.port)
     bus["port"].comment("socketcand only")
+    bus.add("load_ceiling_pct", b.load_ceiling_pct)
+    bus.add("pdo_mapping", b.pdo_mapping)
     if b.options:
         bus.add("options", dict(b.options))  # [bus.options]: passed to can.Bus as they are
     doc.add("bus", bus)
+    checks = tomlkit.table()
+    for f in dataclasses.fields(cfg.checks):
+        checks.add(f.name, getattr(cfg.checks, f.name))
+    doc.add("checks", checks)
     axes = tomlkit.table(is_super_table=True)
     for name, ac in cfg.axes.items():
         t = tomlkit.table()
@@ -73,6 +82,7 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
         else:
             t.add(tomlkit.comment(f'model = "{ac.plant}"  (not set: the controller believes the plant)'))
         t.add("max_lost_cycles", ac.max_lost_cycles)
+        t.add("last_resort", ac.last_resort)
         if ac.rpdo_timeout_ms is not None:
             t.add("rpdo_timeout_ms", ac.rpdo_timeout_ms)
         else:
@@ -108,10 +118,36 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
             else:
                 lt.add(key, getattr(lim, attr))
         lt.add("max_speed_m_s", lim.max_speed)
+        lt.add("max_jump_m", lim.max_jump)
         t.add("limits", lt)
+        _add_keyed(t, "motion", ac.motion, MOTION_KEYS)
+        _add_keyed(t, "homing", ac.homing, HOMING_KEYS)
+        if ac.emulator is not None:
+            _add_keyed(t, "emulator", ac.emulator, EMULATOR_KEYS)
         axes.add(name, t)
     doc.add("axes", axes)
     return doc
+
+
+#: [axes.NAME.emulator] keys and the fields of controllers/homing.py's EmulatorIO
+EMULATOR_KEYS = {"home_switch_m": "home_switch", "limit_switches_m": "limit_switches", "hard_stops_m": "hard_stops"}
+
+
+def _add_keyed(table: Any, name: str, obj: Any, keys: Mapping[str, str]) -> None:
+    """A sub-table of the axis from a parsed object whose fields the configuration's ``keys`` name: every
+    key with the value in use (an unset optional one as a comment, so the text still loads back)."""
+    if obj is None:
+        return
+    sub = tomlkit.table()
+    for key, attr in keys.items():
+        value = getattr(obj, attr)
+        if key == "direction":
+            value = "negative" if value < 0 else "positive"
+        if value is None or (isinstance(value, float) and not math.isfinite(value)):
+            sub.add(tomlkit.comment(f"{key} not set"))
+        else:
+            sub.add(key, _plain(value))
+    table.add(name, sub)
 
 
 def _settings_in_use(cfg: MachineConfig, name: str) -> dict[str, Any]:

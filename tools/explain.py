@@ -76,7 +76,7 @@ TOP_WINDOWS_LEFT_OUT = 2
 #: the most effects named in one trace
 MAX_EFFECTS = 4
 #: after a round, at most this many of its best other candidates are fitted again
-NEXT_CANDIDATES = 5
+NEXT_CANDIDATES = len(FITTERS)
 
 
 @dataclass
@@ -292,11 +292,11 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                 charge = PARAM_PENALTY * f.n_params * gap_cur ** 2
                 cands.append((st["robust_gain"] - charge, f, st))
             cands.sort(key=lambda c: -c[0])
-            # the next round refits only candidates that showed some gain in this one (an effect masked
-            # by a stronger one still gains something alone), the two-body ones only with a clear gain:
-            # they cost half of a round
-            first_rank = [c[1].key for c in cands if c[2]["robust_gain"] > (0.5 if c[1].key in SPLITTING else 0.0)
-                          * floor ** 2 and c[1] is not cands[0][1]]
+            # the next round refits the other candidates; the two-body ones (half the cost of a round)
+            # only when they showed a clear gain in this one. An effect that gains nothing alone can
+            # still be needed once another is in (a constant force against direction-dependent friction)
+            first_rank = [c[1].key for c in cands if c[1] is not cands[0][1] and (
+                c[1].key not in SPLITTING or c[2]["robust_gain"] > 0.5 * floor ** 2)]
             score, best, st = cands[0]
             decision = ""
             ok = True

@@ -34,6 +34,8 @@ DT_TOLERANCE = 0.02
 MOVING_COUNTS = 64
 #: encoder resolution assumed when the trace does not give ``encoder_m_per_count`` (drivectl's default)
 DEFAULT_RESOLUTION_M = 76.29e-9
+#: the floor's smooth part of a window's error: polynomials in t up to this order (see _projector)
+SMOOTH_ORDER = 2
 #: Savitzky-Golay window for the start velocity (samples, odd) and its polynomial order
 SG_LENGTH = 15
 SG_ORDER = 3
@@ -282,7 +284,7 @@ def simulate_windows(prep: Prepared, spec: PlantSpec) -> np.ndarray:
 @lru_cache(maxsize=8)
 def _walk_stats(length: int) -> tuple[float, float]:
     """For a doubly integrated white force over a window: the share of its squared error that survives
-    removing [t, t^2], and the median over its mean of that surviving part (computed, not tuned).
+    removing the smooth part (_projector), and the median over its mean of that surviving part (computed, not tuned).
 
     A window's error from white force noise is the double sum of the noise (a random walk in
     velocity, integrated): covariance S; the projected part P x has covariance P S P, whose
@@ -303,9 +305,11 @@ def _walk_stats(length: int) -> tuple[float, float]:
 
 @lru_cache(maxsize=8)
 def _projector(length: int) -> np.ndarray:
-    """Projector off the span of t and t^2 over a window (a start-velocity error, a constant force)."""
-    k = np.arange(1, length + 1, dtype=float)
-    X = np.column_stack([k, k * k])
+    """Projector off the span of t .. t^SMOOTH_ORDER over a window: a start-velocity error, and a missing
+    force that varies slowly within the window (constant, linear or quadratic in time: an offset, a
+    spring or viscous force as the axis moves, a mass error through a smooth acceleration)."""
+    k = np.arange(1, length + 1, dtype=float) / length
+    X = np.column_stack([k ** p for p in range(1, SMOOTH_ORDER + 1)])
     return np.eye(length) - X @ np.linalg.pinv(X)
 
 
@@ -315,8 +319,8 @@ def noise_floor(prep: Prepared, rough: np.ndarray) -> float:
 
     Two parts, both estimated from the trace:
 
-    * force noise: per window, what no smooth correction (a start-velocity error, a constant force:
-      the span of t and t^2) explains, scaled back by the share of a doubly integrated white force
+    * force noise: per window, what no smooth correction (a start-velocity error, a slowly varying
+      force: the span of t .. t^4) explains, scaled back by the share of a doubly integrated white force
       that such a projection leaves, and the median over windows read as a mean through that
       noise's own distribution (:func:`_walk_stats`): the median keeps windows hit by an effect
       from raising it. An effect that varies within a window (a short period, a mode) also
@@ -335,7 +339,8 @@ def noise_floor(prep: Prepared, rough: np.ndarray) -> float:
         sigma_v = sigma_q * _sg_slope_gain() / prep.dt
         T = L * prep.dt
         vel_part = sigma_v ** 2 * T * T / 3.0
-    return math.sqrt(force_part + vel_part)
+    # never below the encoder's own quantisation (a noise-free simulated trace would give zero)
+    return max(math.sqrt(force_part + vel_part), prep.resolution / math.sqrt(12.0))
 
 
 @lru_cache(maxsize=1)

@@ -508,3 +508,42 @@ def column_names(names: Iterable[str]) -> tuple[str, ...]:
     """The required four first, then the others in their order."""
     names = list(names)
     return tuple(REQUIRED) + tuple(n for n in names if n not in REQUIRED)
+
+
+def amend_trailer(path: str | Path, updates: Mapping[str, str]) -> None:
+    """Rewrite the trailer of a streamed trace that is already closed (docs/trace-format.md: ``# key: value``
+    lines after the data, then the end marker) with ``updates`` merged in: the verdict of :func:`assess`
+    is known only after the run's writer closed its file. In place (``AXIS.csv`` is a hard link to the
+    same file); only the trailer is rewritten, the rows stay as they are."""
+    with open(path, "r+b") as f:
+        size = f.seek(0, os.SEEK_END)
+        tail_start = max(0, size - 65536)  # the trailer is a few lines; 64 KiB holds it many times over
+        f.seek(tail_start)
+        tail = f.read()
+        lines = tail.split(b"\n")
+        if lines and lines[-1] == b"":
+            lines.pop()
+        # walk back over the trailer (comment lines) to the last data row
+        i = len(lines)
+        while i > 0 and lines[i - 1].startswith(b"#"):
+            i -= 1
+        if i == 0 and tail_start > 0:
+            raise ValueError(f"{path}: trailer longer than 64 KiB")
+        if i == 0:
+            return  # a file with no data row: nothing streamed, nothing to amend
+        offset = tail_start + sum(len(line) + 1 for line in lines[:i])
+        trailer: dict[str, str] = {}
+        for line in lines[i:]:
+            text = line.decode("utf-8", "replace").lstrip("#").strip()
+            if text == END_MARKER.lstrip("#").strip() or ":" not in text:
+                continue
+            key, _, value = text.partition(":")
+            trailer[key.strip()] = value.strip()
+        ended = any(line.strip() == END_MARKER.encode() for line in lines[i:])
+        trailer.update({k: " ".join(str(v).split()) for k, v in updates.items()})
+        out = [f"# {k}: {v}" for k, v in trailer.items()] + ([END_MARKER] if ended else [])
+        f.seek(offset)
+        f.truncate()
+        f.write(("\n".join(out) + "\n").encode())
+        f.flush()
+        os.fsync(f.fileno())

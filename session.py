@@ -416,6 +416,7 @@ class AxisControl:
         meta = {"effort_unit": self._rt.ch.axis.effort_unit, "bus": self._m.bus, "clock": loop.clock}
         cap = Capture(self.name, tuple(channels), trig, pre_n, post_n, loop.dt, meta)
         cap.run_until = self._m.run_until
+        cap.plot_apart = loop.clock == "wall"
         loop.submit(lambda: self._rt.captures.append(cap))
         return cap
 
@@ -533,8 +534,9 @@ def connect(
     stall_s: float = 0.05,
     ring_s: float = 5.0,
     cpu: int | None = None,
-    realtime: bool = False,
+    realtime: bool = True,
     gc_control: bool = True,
+    gil_switch: bool = True,
 ) -> Machine:
     """Connect to the machine of ``config`` (a file, a MachineConfig, or None: $DRIVECTL_CONFIG, else
     the embedded emulated machine) and start its resident loop.
@@ -544,7 +546,7 @@ def connect(
     ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see README, Faults;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
     fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
-    ``realtime``, ``gc_control``: how the wall-clock loop keeps its deadlines (see controllers/loop.py).
+    ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see controllers/loop.py).
     """
     from drivectl.controllers.registry import make_controller
     from drivectl.plant_emulator.faults import parse_fault
@@ -574,7 +576,8 @@ def connect(
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
-                         ring_s=ring_s, fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime)
+                         ring_s=ring_s, fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime,
+                         gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
     except BaseException:

@@ -9,8 +9,10 @@ the loop in its own thread at 1 kHz on the wall clock, ``drivectl.connect(clock=
 * the measures the loop takes to hold its deadlines, each measured by its effect in a ui-busy run of
   --measure-seconds with that measure off: the garbage collector kept out of the cycle (frozen heap,
   automatic collection off, young generation collected in the slack), the loop thread pinned to a CPU,
-  SCHED_FIFO priority (where the OS grants it), and the interpreter's switch interval (how long the
-  plotting thread may hold the GIL before the loop thread gets it);
+  SCHED_FIFO priority (where the OS grants it), and the interpreter's switch
+  interval (a tenth of a cycle while the loop runs; off: Python's 5 ms, how long the plotting thread may
+  hold the GIL before the loop's thread gets it), and drivectl's own plots drawn in a child process
+  (matplotlib renders in C holding the GIL for tens of ms);
 * move: a 10 mm move_to, the distance from the target once it settled (um);
 * jog: a jog at 10 mm/s renewed for 0.5 s and then left alone: the time from the last renewal until
   the axis stands (the 200 ms dead-man interval plus the controlled stop), ms.
@@ -40,25 +42,27 @@ matplotlib.use("Agg")
 import drivectl  # noqa: E402
 
 
-def _held(seconds: float, *, busy: bool, out: Path, **kw) -> dict:
+def _held(seconds: float, *, busy: bool, out: Path, plot_apart: bool = True, **kw) -> dict:
     """One run: enable x, hold ``seconds`` of wall time (plotting a capture every second when ``busy``);
     the loop's counters over the held part."""
     with drivectl.connect(axes=["x"], clock="wall", fault_dir=None, **kw) as m:
         x = m.axes["x"]
         x.enable()
         st0 = m.status()
-        t_end = time.monotonic() + seconds
+        t0 = time.monotonic()
+        t_end = t0 + seconds
         plots = 0
         while time.monotonic() < t_end:
-            if busy:
+            if busy:  # a capture of the ring's last second, written and plotted, once a second
                 cap = x.capture(channels=("reference", "position", "following_error", "effort", "velocity"),
                                 trigger="now", pre=1.0, post=0.0)
                 cap.wait(5.0)
+                cap.plot_apart = plot_apart and cap.plot_apart
                 cap.write(out / f"busy-{plots % 3}.csv", plot=True)
                 plots += 1
-            left = t_end - time.monotonic()
+            left = min(t0 + plots + 1.0 if busy else t_end, t_end) - time.monotonic()
             if left > 0:
-                threading.Event().wait(min(1.0 if not busy else 0.0, left) or 0.001)
+                threading.Event().wait(left)
         st = m.status()
     cycles = st["cycles"] - st0["cycles"]
     missed = st["missed_deadlines"] - st0["missed_deadlines"]
@@ -113,13 +117,9 @@ def main() -> int:
         rows.append(("ui-busy, all measures", _held(short, busy=True, out=out, cpu=cpu)))
         rows.append(("ui-busy, gc left on", _held(short, busy=True, out=out, cpu=cpu, gc_control=False)))
         rows.append(("ui-busy, not pinned", _held(short, busy=True, out=out)))
-        rows.append(("ui-busy, + SCHED_FIFO", _held(short, busy=True, out=out, cpu=cpu, realtime=True)))
-        interval = sys.getswitchinterval()
-        sys.setswitchinterval(0.005)  # the interpreter's default: the plotting thread holds the GIL 5 ms
-        try:
-            rows.append(("ui-busy, switch 5 ms", _held(short, busy=True, out=out, cpu=cpu)))
-        finally:
-            sys.setswitchinterval(interval)
+        rows.append(("ui-busy, normal priority", _held(short, busy=True, out=out, cpu=cpu, realtime=False)))
+        rows.append(("ui-busy, plot in-process", _held(short, busy=True, out=out, cpu=cpu, plot_apart=False)))
+        rows.append(("ui-busy, GIL switch 5 ms", _held(short, busy=True, out=out, cpu=cpu, gil_switch=False)))
     settle_um, stop_ms = _move_and_jog()
     result = {"hold_missed_fraction": hold["missed_fraction"], "hold_worst_late_ms": hold["worst_late_ms"],
               "move_settle_error_um": settle_um, "jog_stop_ms": stop_ms,
@@ -127,7 +127,7 @@ def main() -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print(f"resident loop, axis x, 1 kHz wall clock (switch interval now {sys.getswitchinterval() * 1e3:g} ms)")
+    print("resident loop, axis x, 1 kHz wall clock; each measure's row is a ui-busy run with that measure off")
     head = f"{'run':<26} {'cycles':>8} {'missed':>7} {'missed %':>9} {'worst late ms':>14} {'plots':>6}"
     print(head)
     print("-" * len(head))

@@ -141,6 +141,8 @@ class Capture:
         self.detail = ""
         #: how waiting lets time pass (the machine's run_until: lockstep runs cycles); None: an Event wait
         self.run_until: Callable[[Callable[[], bool], float | None], bool] | None = None
+        #: draw the PNG in a child process (set when a wall-clock loop runs in this process)
+        self.plot_apart = False
 
     @property
     def done(self) -> bool:
@@ -226,12 +228,15 @@ class Capture:
 
     def write(self, path: str | Path, plot: bool = True) -> list[Path]:
         """The trace (format v1) at ``path`` and, with ``plot``, its PNG beside it."""
-        from drivectl.tools.plot import plot_traces
+        from drivectl.tools.plot import plot_files_apart, plot_traces
 
         tr = self.result()
         path = Path(path)
         written = [tr.write(path)]
         if plot and len(tr) > 1:
-            written.append(plot_traces({self.axis: tr}, path.with_suffix(".png"),
-                                       title=f"drivectl capture: {self.axis}, trigger {self._trigger_text()}"))
+            title = f"drivectl capture: {self.axis}, trigger {self._trigger_text()}"
+            png = path.with_suffix(".png")
+            # beside a wall-clock loop the drawing goes to a child process (tools/plot.py says why)
+            written.append(plot_files_apart({self.axis: written[0]}, png, title) if self.plot_apart
+                           else plot_traces({self.axis: tr}, png, title=title))
         return written

@@ -28,7 +28,9 @@ to ``fault_dir`` as a trace v1: the last seconds before any fault are on disk).
 The garbage collector is kept out of the cycle in wall mode: the heap is frozen when the thread
 starts (``gc.freeze``), automatic collection is off while it runs, and the loop collects the young
 generation itself in the slack after a cycle's write. ``cpu`` pins the loop thread to a CPU and
-``realtime`` asks for SCHED_FIFO where the OS allows it; ``status()`` says what was granted.
+``realtime`` asks for SCHED_FIFO where the OS allows it; the interpreter's switch interval is a tenth
+of a cycle while the loop runs (a thread beside it, a program plotting, gives the GIL up within that,
+not after Python's default 5 ms); ``status()`` says what was granted.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import collections
 import gc
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -234,6 +237,7 @@ class ServoLoop:
         ring_s: float = 5.0,
         fault_dir: str | Path | None = None,
         gc_control: bool = True,
+        gil_switch: bool = True,
         cpu: int | None = None,
         realtime: bool = False,
         io_lock: threading.RLock | None = None,
@@ -251,6 +255,9 @@ class ServoLoop:
         self.stall_s = stall_s
         self.fault_dir = Path(fault_dir) if fault_dir is not None else None
         self.gc_control = gc_control
+        #: shorten the interpreter's switch interval while the wall-clock loop runs (see _take_switch)
+        self.gil_switch = gil_switch
+        self._switch_taken = False
         self.cpu = cpu
         self.realtime = realtime
         self.meta = meta or {}
@@ -331,6 +338,9 @@ class ServoLoop:
             if self._gc_taken:
                 _release_gc()
                 self._gc_taken = False
+            if self._switch_taken:
+                _release_switch()
+                self._switch_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
@@ -632,6 +642,11 @@ class ServoLoop:
             raise
 
     def _setup_thread(self) -> None:
+        if self.gil_switch:
+            was = _take_switch(self.dt / 10)
+            self._switch_taken = True
+            self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
+                                   "a thread beside the loop gives up the GIL within a tenth of a cycle")
         if self.gc_control:
             _take_gc()
             self._gc_taken = True
@@ -750,6 +765,32 @@ def _release_gc() -> None:
             gc.unfreeze()  # back to normal collection: what was frozen may be collected again
             if _gc_was_enabled:
                 gc.enable()
+
+
+# the interpreter's switch interval is the process's too. Python hands the GIL to a waiting thread only
+# after the holder has run for this long (5 ms by default): a program plotting beside the loop would
+# hold the loop's thread off for up to five cycles. The first wall-clock loop shortens it, the last
+# one restores it.
+_switch_holders = 0
+_switch_was = 0.005
+
+
+def _take_switch(interval: float) -> float:
+    global _switch_holders, _switch_was
+    with _gc_lock:
+        if _switch_holders == 0:
+            _switch_was = sys.getswitchinterval()
+            sys.setswitchinterval(min(_switch_was, interval))
+        _switch_holders += 1
+        return _switch_was
+
+
+def _release_switch() -> None:
+    global _switch_holders
+    with _gc_lock:
+        _switch_holders -= 1
+        if _switch_holders == 0:
+            sys.setswitchinterval(_switch_was)
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

@@ -81,3 +81,19 @@ def test_trace_approaches_the_profile_start_or_refuses(emulator, tmp_path):
     assert done.returncode == 0, done.stderr
     tr = Trace.read(Path(tmp_path / "out" / "x.csv"))
     assert tr.meta["profile"] == "circle" and abs(tr.pos[0] - 0.04) < 20e-6  # it started where the circle does
+
+
+def test_shell_script_moves_an_axis_in_another_process(emulator, tmp_path):
+    """drivectl shell driven through stdin against the emulator in another process (lockstep clock,
+    as above: outcomes only)."""
+    script = "enable x\nmove x 3mm\nstatus x\nexit\n"
+    done = subprocess.run([sys.executable, "-m", "drivectl", "--config", str(emulator), "shell", "--clock",
+                           "lockstep", "--out", str(tmp_path / "out")], input=script, capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    out = done.stdout.splitlines()
+    assert done.returncode == 0, (done.stdout, done.stderr)
+    assert out[0].startswith("x: Operation Enabled")
+    assert out[1].startswith("x: move to 3.0000 mm done")
+    assert abs(float(out[1].split(" at ")[1].split(" mm")[0]) - 3.0) < 0.005
+    assert out[2].startswith("x: servo, Operation Enabled")
+    assert "closed: x Switch On Disabled" in done.stderr  # the drive's report on the way out

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -147,7 +146,28 @@ def test_the_live_window_draws_what_it_is_fed(tmp_path):
 
     q = mp.get_context("spawn").Queue()
     for k in range(5):
-        q.put((k * 0.05, [(0.001 * k, 1e-6 * k)]))
+        q.put((k * 0.05, [[0.001 * k, 1e-3 * k, 2.0]]))
     q.put(None)
-    window_main(q, ["x"], max_frames=3)  # returns: the end marker was read, nothing blocked
-    assert Path(tmp_path).exists()
+    window_main(q, ["x"], ("position", "following_error", "effort"), max_frames=3)  # the end marker ends it
+
+
+def test_live_channels_are_chosen_and_checked(monkeypatch, capsys, tmp_path):
+    rc, out, _ = shell(monkeypatch, capsys, "live on channels=position,effort\nlive on channels=torque\n"
+                       "live off\n", "--out", str(tmp_path))
+    assert rc == 1
+    assert out[0] == "live view on (none (output is not a terminal)): position, effort"
+    assert out[1].startswith("error: live: channel 'torque': expected one of position, reference")
+    assert out[2] == "live view off"
+
+
+def test_the_status_line_shows_the_chosen_channels(tmp_path):
+    import drivectl
+    from drivectl.tools.live import StatusLine
+
+    buf = io.StringIO()
+    with drivectl.connect(axes=["x"], fault_dir=tmp_path) as m:
+        m.axes["x"].enable()
+        m.axes["x"].move_to(0.002).wait(5)
+        StatusLine(m, buf, ("position", "following_error")).refresh()
+    line = buf.getvalue().split("\x1b[2K")[-1]
+    assert line.startswith("x: position 2 mm following_error ")

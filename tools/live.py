@@ -20,13 +20,38 @@ from typing import Any, TextIO
 SAMPLE_HZ = 20
 WINDOW_POINTS = 20 * 30
 
+#: what the live view can show: channel -> (the loop runtime's attribute, scale, unit)
+LIVE_CHANNELS = {"position": ("position", 1e3, "mm"), "reference": ("reference", 1e3, "mm"),
+                 "following_error": ("following_error", 1e6, "um"), "velocity": ("velocity", 1e3, "mm/s"),
+                 "effort": ("effort", 1.0, "effort unit")}
+DEFAULT_LIVE = ("position", "following_error")
+
+
+def parse_channels(text: str | None) -> tuple[str, ...]:
+    """``position,effort`` -> the channels; ValueError naming the one not known."""
+    if not text:
+        return DEFAULT_LIVE
+    names = tuple(c for c in text.split(",") if c)
+    for c in names:
+        if c not in LIVE_CHANNELS:
+            raise ValueError(f"live: channel {c!r}: expected one of {', '.join(LIVE_CHANNELS)}")
+    return names or DEFAULT_LIVE
+
+
+def sample(machine: Any, channels: tuple[str, ...]) -> list[list[float]]:
+    """Per axis, the chosen channels' values of the last cycle, scaled for display."""
+    rows = []
+    for rt in machine.loop.axes.values():
+        rows.append([getattr(rt, LIVE_CHANNELS[c][0]) * LIVE_CHANNELS[c][1] for c in channels])
+    return rows
+
 
 def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 class QuietView:
-    kind = "off (output is not a terminal)"
+    kind = "none (output is not a terminal)"
 
     def refresh(self) -> None:
         pass
@@ -40,15 +65,18 @@ class StatusLine:
 
     kind = "status line"
 
-    def __init__(self, machine: Any, out: TextIO):
+    def __init__(self, machine: Any, out: TextIO, channels: tuple[str, ...] = DEFAULT_LIVE):
         self.m = machine
         self.out = out
+        self.channels = channels
         self._shown = False
 
     def refresh(self) -> None:
-        from drivectl.tools.shell import positions_line
-
-        self.out.write("\r\x1b[2K" + positions_line(self.m))
+        parts = []
+        for name, row in zip(self.m.loop.axes, sample(self.m, self.channels), strict=True):
+            vals = " ".join(f"{c} {v:.4g} {LIVE_CHANNELS[c][2]}" for c, v in zip(self.channels, row, strict=True))
+            parts.append(f"{name}: {vals}")
+        self.out.write("\r\x1b[2K" + "  |  ".join(parts))
         self.out.flush()
         self._shown = True
 
@@ -67,11 +95,12 @@ class WindowView:
 
     kind = "window"
 
-    def __init__(self, machine: Any):
+    def __init__(self, machine: Any, channels: tuple[str, ...] = DEFAULT_LIVE):
         self.m = machine
+        self.channels = channels
         ctx = mp.get_context("spawn")
         self.q: Any = ctx.Queue(maxsize=1000)
-        self.proc = ctx.Process(target=window_main, args=(self.q, list(machine.axes)), daemon=True)
+        self.proc = ctx.Process(target=window_main, args=(self.q, list(machine.axes), channels), daemon=True)
         self.proc.start()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._sample, name="drivectl-live", daemon=True)
@@ -82,9 +111,8 @@ class WindowView:
             if not self.proc.is_alive():
                 return  # the window was closed
             t = self.m.loop.cycle * self.m.loop.dt
-            row = [(ax.position, ax.following_error) for ax in self.m.axes.values()]
             try:
-                self.q.put_nowait((t, row))
+                self.q.put_nowait((t, sample(self.m, self.channels)))
             except queue.Full:  # the window is behind: drop, never block the session
                 pass
 
@@ -102,21 +130,23 @@ class WindowView:
             self.proc.terminate()
 
 
-def window_main(q: Any, names: list[str], *, max_frames: int | None = None) -> None:
-    """The child: draw what arrives on ``q`` until None arrives or the window is closed."""
+def window_main(q: Any, names: list[str], channels: tuple[str, ...] = DEFAULT_LIVE, *,
+                max_frames: int | None = None) -> None:
+    """The child: one panel per channel, a line per axis; draw what arrives on ``q`` until None arrives
+    or the window is closed."""
     import matplotlib.pyplot as plt
 
-    fig, (ax_pos, ax_err) = plt.subplots(2, 1, sharex=True, figsize=(8, 5))
-    fig.canvas.manager.set_window_title("drivectl live") if fig.canvas.manager else None
+    fig, panels = plt.subplots(len(channels), 1, sharex=True, figsize=(8, 2.5 * len(channels)), squeeze=False)
+    panels = [p[0] for p in panels]
+    if fig.canvas.manager is not None:
+        fig.canvas.manager.set_window_title("drivectl live")
     t: deque[float] = deque(maxlen=WINDOW_POINTS)
-    pos = {n: deque(maxlen=WINDOW_POINTS) for n in names}
-    err = {n: deque(maxlen=WINDOW_POINTS) for n in names}
-    lp = {n: ax_pos.plot([], [], label=n)[0] for n in names}
-    le = {n: ax_err.plot([], [], label=n)[0] for n in names}
-    ax_pos.set_ylabel("position, mm")
-    ax_err.set_ylabel("following error, um")
-    ax_err.set_xlabel("time, s")
-    ax_pos.legend(loc="upper left")
+    data = {(n, c): deque(maxlen=WINDOW_POINTS) for n in names for c in channels}
+    lines = {(n, c): panels[j].plot([], [], label=n)[0] for n in names for j, c in enumerate(channels)}
+    for j, c in enumerate(channels):
+        panels[j].set_ylabel(f"{c}, {LIVE_CHANNELS[c][2]}")
+    panels[-1].set_xlabel("time, s")
+    panels[0].legend(loc="upper left")
     frames = 0
     while plt.fignum_exists(fig.number):
         end = False
@@ -128,17 +158,16 @@ def window_main(q: Any, names: list[str], *, max_frames: int | None = None) -> N
             if item is None:
                 end = True
                 break
-            ts, row = item
+            ts, rows = item
             t.append(ts)
-            for n, (p, e) in zip(names, row, strict=True):
-                pos[n].append(p * 1e3 if math.isfinite(p) else math.nan)
-                err[n].append(e * 1e6)
-        for n in names:
-            lp[n].set_data(t, pos[n])
-            le[n].set_data(t, err[n])
-        for a in (ax_pos, ax_err):
-            a.relim()
-            a.autoscale_view()
+            for n, row in zip(names, rows, strict=True):
+                for c, v in zip(channels, row, strict=True):
+                    data[(n, c)].append(v if math.isfinite(v) else math.nan)
+        for key, line in lines.items():
+            line.set_data(t, data[key])
+        for p in panels:
+            p.relim()
+            p.autoscale_view()
         plt.pause(0.05)
         frames += 1
         if end or (max_frames is not None and frames >= max_frames):
@@ -146,11 +175,11 @@ def window_main(q: Any, names: list[str], *, max_frames: int | None = None) -> N
     plt.close(fig)
 
 
-def open_live_view(machine: Any, out: TextIO) -> Any:
+def open_live_view(machine: Any, out: TextIO, channels: tuple[str, ...] = DEFAULT_LIVE) -> Any:
     """A window where a display exists, a status line on a terminal, else nothing."""
     if has_display():
         try:
-            return WindowView(machine)
+            return WindowView(machine, channels)
         except Exception:  # noqa: BLE001 - no GUI backend: fall back to the text line
             pass
-    return StatusLine(machine, out) if out.isatty() else QuietView()
+    return StatusLine(machine, out, channels) if out.isatty() else QuietView()

@@ -13,7 +13,6 @@ shell can be driven by a program and tested; the exit code is then 1 when a comm
 from __future__ import annotations
 
 import cmd
-import math
 import shlex
 import sys
 import time
@@ -43,7 +42,8 @@ HELP = """commands (positions: m mm um nm; speeds: m/s mm/s um/s; times: s ms):
   plot [FILE ...]               PNG of trace files (default: the last one written)
   wait T                        let time pass (the loop holds the axes)
   scan                          the drives of this machine: node, identity, power state
-  live on|off                   the live view (a window where a display exists, else a status line)
+  live on|off [channels=a,b]    the live view of position, reference, following_error, velocity, effort
+                                (a window where a display exists, else a status line)
   exit                          disable every axis and leave
 a command ending in & returns at once; Ctrl-C stops every axis and keeps the session"""
 
@@ -377,9 +377,17 @@ class Shell(cmd.Cmd):
         return False
 
     def do_live(self, arg: str) -> bool:
-        word = arg.strip()
-        if word not in ("on", "off"):
-            raise ShellError("usage: live on|off")
+        pos, opts, _ = self._args(arg, 1, "live on|off [channels=position,following_error,...]")
+        word = pos[0]
+        if word not in ("on", "off") or len(pos) > 1:
+            raise ShellError("usage: live on|off [channels=position,following_error,...]")
+        from drivectl.tools.live import parse_channels
+
+        try:
+            channels = parse_channels(opts.pop("channels", None))
+        except ValueError as exc:
+            raise ShellError(str(exc)) from None
+        self._no_more(opts, "live")
         if word == "off":
             if self.live is not None:
                 self.live.close()
@@ -388,9 +396,10 @@ class Shell(cmd.Cmd):
             return False
         from drivectl.tools.live import open_live_view
 
-        if self.live is None:
-            self.live = open_live_view(self.m, self.stdout)
-        self.say(f"live view on ({self.live.kind})")
+        if self.live is not None:
+            self.live.close()
+        self.live = open_live_view(self.m, self.stdout, channels)
+        self.say(f"live view on ({self.live.kind}): {', '.join(channels)}")
         return False
 
     def do_exit(self, arg: str) -> bool:
@@ -471,16 +480,6 @@ def _history(load: bool) -> None:
             readline.write_history_file(path)
     except OSError:
         pass
-
-
-def positions_line(machine: Any) -> str:
-    """One line of every axis's position and following error (the text live view)."""
-    parts = []
-    for name, ax in machine.axes.items():
-        p = ax.position
-        pos = format_position(p) if math.isfinite(p) else "-"
-        parts.append(f"{name} {pos} ({ax.following_error * 1e6:+.2f} um)")
-    return "  ".join(parts)
 
 
 def add_shell_parser(sub: Any) -> None:

@@ -124,16 +124,9 @@ class LinearModel:
         t = nb - 1
         ac[2 * t + 1, 2 * t] -= self.table_stiffness / self.masses[t]
         if nb == 2:
-            k, c = self.stiffness, self.damping
-            m0, m1 = self.masses
-            ac[1, 0] -= k / m0
-            ac[1, 2] += k / m0
-            ac[1, 1] -= c / m0
-            ac[1, 3] += c / m0
-            ac[3, 0] += k / m1
-            ac[3, 2] -= k / m1
-            ac[3, 1] += c / m1
-            ac[3, 3] -= c / m1
+            from drivectl.plant_emulator.models import add_coupling
+
+            add_coupling(ac, self.stiffness, self.damping, *self.masses)
         return ac, bc
 
     def discrete(self, dt: float) -> tuple[np.ndarray, np.ndarray]:

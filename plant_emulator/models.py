@@ -415,17 +415,7 @@ class Plant:
         table = n - 1
         ac[2 * table + 1, 2 * table] -= d.table_stiffness / d.bodies[table].mass
         if d.coupling is not None and engaged:
-            k, c = d.coupling.stiffness, d.coupling.damping
-            m0, m1 = d.bodies[0].mass, d.bodies[1].mass
-            # force on body 0: -k (x0 - x1) - c (v0 - v1); on body 1 the opposite
-            ac[1, 0] -= k / m0
-            ac[1, 2] += k / m0
-            ac[1, 1] -= c / m0
-            ac[1, 3] += c / m0
-            ac[3, 0] += k / m1
-            ac[3, 2] -= k / m1
-            ac[3, 1] += c / m1
-            ac[3, 3] -= c / m1
+            add_coupling(ac, d.coupling.stiffness, d.coupling.damping, d.bodies[0].mass, d.bodies[1].mass)
         return _discretise(ac, bc, self.h)
 
     # ---------------------------------------------------------------------------------------------
@@ -599,3 +589,16 @@ class Plant:
                     if abs(new[vi]) < 1e-15:
                         new[vi] = 0.0
             s[0], s[1], s[2], s[3] = new
+
+
+def add_coupling(ac: np.ndarray, k: float, c: float, m0: float, m1: float) -> None:
+    """Add a spring ``k`` and damper ``c`` between body 0 and body 1 to the continuous state matrix ``ac``
+    (states x0, v0, x1, v1): force on body 0 -k (x0 - x1) - c (v0 - v1), on body 1 the opposite."""
+    ac[1, 0] -= k / m0
+    ac[1, 2] += k / m0
+    ac[1, 1] -= c / m0
+    ac[1, 3] += c / m0
+    ac[3, 0] += k / m1
+    ac[3, 2] -= k / m1
+    ac[3, 1] += c / m1
+    ac[3, 3] -= c / m1

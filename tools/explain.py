@@ -53,6 +53,7 @@ from drivectl.tools.explain_fit import (
     PARAM_NAMES,
     SPLITTING,
     Fit,
+    batch_groups,
     refine_jointly,
     run_fitter,
 )
@@ -215,14 +216,7 @@ def _mse_of(prep: Prepared, specs: list[PlantSpec]) -> tuple[np.ndarray, np.ndar
     """Per-window MSE and rough part (W, C) of plants that may differ in body count (simulated in groups)."""
     out = np.empty((len(prep.windows.start), len(specs)))
     rough = np.empty_like(out)
-    groups: dict[tuple[bool, bool], list[int]] = {}
-    for i, s in enumerate(specs):
-        d = s.design()
-        two = len(d.bodies) == 2
-        # a linear mode's start state is reconstructed only when every plant of a batch has one
-        linear = two and not (d.coupling and d.coupling.gap) and not d.bodies[0].has_coulomb
-        groups.setdefault((two, linear), []).append(i)
-    for idx in groups.values():
+    for idx in batch_groups(specs):
         out[:, idx], rough[:, idx] = window_errors(prep, [specs[i] for i in idx])
     return out, rough
 

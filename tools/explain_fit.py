@@ -407,15 +407,21 @@ def refine_jointly(prep: Prepared, nominal: PlantSpec, fits: list[Fit], iteratio
 def _gaps_grouped(prep: Prepared, specs: list[PlantSpec], substeps: int | None) -> np.ndarray:
     """Gaps of plants that may differ in body count (one batch per kind)."""
     out = np.empty(len(specs))
+    for idx in batch_groups(specs):
+        out[idx] = gaps_of(prep, [specs[i] for i in idx], substeps)
+    return out
+
+
+def batch_groups(specs: list[PlantSpec]) -> list[list[int]]:
+    """Indices of ``specs`` that one batch simulation can take together: same body count, and (two bodies)
+    whether the mode is linear, so that its start state can be reconstructed for every plant of the batch."""
     groups: dict[tuple[bool, bool], list[int]] = {}
     for i, s in enumerate(specs):
         d = s.design()
         two = len(d.bodies) == 2
         linear = two and not (d.coupling and d.coupling.gap) and not d.bodies[0].has_coulomb
         groups.setdefault((two, linear), []).append(i)
-    for idx in groups.values():
-        out[idx] = gaps_of(prep, [specs[i] for i in idx], substeps)
-    return out
+    return list(groups.values())
 
 
 def _quadratic_minimum(Q: np.ndarray, y: np.ndarray, n: int) -> np.ndarray | None:

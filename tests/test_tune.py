@@ -154,3 +154,16 @@ def test_bad_input_exit_2_one_line(tmp_path, capsys, argv) -> None:
     lines = cap.err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("drivectl: ")
     assert not (tmp_path / "t.toml").exists()
+
+
+def test_tune_with_another_controller_keeps_the_settings_it_also_takes(tmp_path):
+    from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
+    from drivectl.tools.tune import starting_gains
+
+    cfg_file = tmp_path / "m.toml"
+    cfg_file.write_text(DEFAULT_CONFIG_TOML.replace('controller = "asmc"             #',
+                                                    'controller = "pid"             #', 1)
+                        .replace("law = 14                        # paper 004 gain law (11..14)", "kp = 2.5e6", 1))
+    cfg = load_config(cfg_file)
+    base, start, _ = starting_gains(cfg, "x", "pid-dob")
+    assert base == {"kp": 2.5e6} and start["kp"] == 2.5e6  # carried over, as trace --controller does

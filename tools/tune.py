@@ -383,10 +383,13 @@ def starting_gains(cfg: MachineConfig, axis: str,
     """The axis's settings table for ``controller`` and the starting values of its tuned gains
     (as the controller actually runs them: model-based controllers add their paper's table)."""
     from drivectl.controllers.registry import make_controller
+    from drivectl.tools.checks import carry_settings
     from drivectl.tools.machine import model_specs
 
     ac = cfg.axis(axis)
-    base = dict(ac.controller_settings) if controller == ac.controller else {}
+    # another controller keeps the axis's settings it also takes (as trace --controller does)
+    base = dict(ac.controller_settings) if controller == ac.controller else carry_settings(
+        ac.controller_settings, controller)[0]
     spec = model_specs(cfg, [axis])[axis]
     ctrl = make_controller(controller, cfg.cycle_s, base, plant=spec, axis=axis,
                            source=f"{cfg.source}: axes.{axis}.controller_settings")

@@ -46,6 +46,18 @@ from drivectl.tools.trace import Trace, format_value
 __all__ = ["Machine", "AxisControl", "connect", "Move", "MotionFault", "Capture", "Trigger", "LimitError"]
 
 
+def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
+    """In the loop's cycle, before a new command takes the axis: False (the handle ended) when the axis
+    is no longer servoing; else the command under way, if another, ends as replaced."""
+    if rt.state is not AxisState.SERVO:
+        handle._end("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+        return False
+    if rt.handle is not None and rt.handle is not handle:
+        old, rt.handle = rt.handle, None
+        old._end("stopped", rt, f"replaced by {kind}")
+    return True
+
+
 class AxisControl:
     """One axis of a connected machine (``machine.axes["x"]``)."""
 
@@ -172,12 +184,8 @@ class AxisControl:
         rt = self._rt
 
         def go() -> None:
-            if rt.state is not AxisState.SERVO:
-                handle._end("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+            if not _take_over(rt, handle, kind):
                 return
-            if rt.handle is not None and rt.handle is not handle:
-                old, rt.handle = rt.handle, None
-                old._end("stopped", rt, f"replaced by {kind}")
             rt.run = None
             rt.jog_until = 0
             apply()
@@ -327,12 +335,8 @@ class AxisControl:
             self._m._streamed.append(handle)
 
         def begin() -> None:
-            if rt.state is not AxisState.SERVO:
-                handle._end("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+            if not _take_over(rt, handle, "run"):
                 return
-            if rt.handle is not None and rt.handle is not handle:
-                old, rt.handle = rt.handle, None
-                old._end("stopped", rt, "replaced by run")
             rt.jog_until = 0
             rt.run = run
             rt.handle = handle

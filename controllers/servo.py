@@ -254,7 +254,7 @@ def run_channels(
     progress: bool = False,
     disable_at_end: bool = True,
     on_start: Callable[[int], None] | None = None,
-    pace: bool = False,
+    pace: bool | Pacer = False,
     stop_request: StopRequest | None = None,
     stream: str | Path | None = None,
 ) -> RunResult:
@@ -269,7 +269,10 @@ def run_channels(
     ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
     interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
     wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
-    worst lateness are measured and written into the trace metadata, never hidden.
+    worst lateness are measured and written into the trace metadata, never hidden; in-process the
+    emulated drives run on the same wall clock meanwhile (their RPDO deadline catches a master that runs
+    late, as across processes: :meth:`Pacer.now`, ``axis.pace``). ``pace`` may be a :class:`Pacer` (its
+    clock injected: tests).
     ``disable_at_end=False`` leaves the axes enabled (zero effort until the next run takes them).
     ``stream``: a folder the traces are written to as the run goes (tools/trace_stream.py: a
     ``.partial`` file flushed every 100 ms, renamed when the run ends, a new name per run and
@@ -290,7 +293,9 @@ def run_channels(
             if prepare is not None:
                 prepare(ch.profile, plan.t)
             ch.clipped = 0
-        pacer = Pacer(plan.dt) if pace else None
+        pacer = pace if isinstance(pace, Pacer) else Pacer(plan.dt) if pace else None
+        if pacer is not None:
+            _pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
         with signals as request:
             outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
@@ -299,6 +304,9 @@ def run_channels(
     except BaseException:
         rec.abandon()  # what was streamed stays, as a .partial file
         raise
+    finally:
+        if pace:
+            _pace_axes(channels, None)
     return rec.result(outcome, pacer)
 
 
@@ -543,11 +551,12 @@ class Pacer:
 
     SPIN_S = 300e-6
 
-    def __init__(self, dt: float):
+    def __init__(self, dt: float, now: Callable[[], float] | None = None,
+                 sleep: Callable[[float], None] | None = None):
         import time
 
-        self._now = time.perf_counter
-        self._sleep = time.sleep
+        self._now = now or time.perf_counter  # injectable: tests stall a master on a simulated clock
+        self._sleep = sleep or time.sleep
         self.dt = dt
         self.t0 = self._now()
         self.missed = 0
@@ -565,6 +574,20 @@ class Pacer:
             self.worst_late = late
         if late > 0.5 * self.dt:
             self.missed += 1
+
+
+    def now(self) -> float:
+        """The pacer's clock (the wall clock the in-process drives run on while the run is paced)."""
+        return self._now()
+
+
+def _pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None) -> None:
+    """Tell each axis that a paced run starts on ``wall`` (None: it ended); axes without drives of their
+    own clock in this process (SimAxis) have no ``pace``."""
+    for ch in channels:
+        pace = getattr(ch.axis, "pace", None)
+        if pace is not None:
+            pace(wall)
 
 
 class _Interrupted(Exception):

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -687,6 +688,13 @@ class CanopenAxis:
     def _target(self, target: PowerState) -> None:
         self.master.target = target
         self._controlword = self.master.controlword(self.power)
+
+    def pace(self, wall: Callable[[], float] | None) -> None:
+        """A run paced on the wall clock ``wall`` starts (None: it ended). In-process (lockstep) the emulated
+        drives on this bus then run on that clock, as they do across processes (driver/network.Lockstep.pace);
+        across processes a drive has its own clock and nothing changes."""
+        if self.lockstep:
+            self.network.lockstep.pace(wall)
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

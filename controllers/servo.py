@@ -30,7 +30,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
-from drivectl.controllers.run_checks import JumpState, position_jump
+from drivectl.controllers.run_checks import JumpState, RunChecks, RunGuard, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -257,6 +257,7 @@ def run_channels(
     pace: bool | Pacer = False,
     stop_request: StopRequest | None = None,
     stream: str | Path | None = None,
+    checks: RunChecks | None = None,
 ) -> RunResult:
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
@@ -278,6 +279,8 @@ def run_channels(
     ``.partial`` file flushed every 100 ms, renamed when the run ends, a new name per run and
     ``AXIS.csv`` the latest; ``RunResult.paths``); the files are opened before anything moves, so an
     output that cannot be written stops the run before it starts (TraceWriteError).
+    ``checks``: the ``[checks]`` fault thresholds stop the run the cycle they are passed (a fault of kind
+    "run check": controllers/run_checks.RunGuard); the warnings are judged after the run (``assess``).
 
     SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
     ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
@@ -296,9 +299,10 @@ def run_channels(
         pacer = pace if isinstance(pace, Pacer) else Pacer(plan.dt) if pace else None
         if pacer is not None:
             _pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
+        guard = RunGuard(checks, plan.cycles, channels, pacer) if checks is not None else None
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
         with signals as request:
-            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
+            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress, guard)
         if outcome.stop is StopReason.COMPLETED and disable_at_end:
             _disable_all(channels)
     except BaseException:
@@ -322,7 +326,7 @@ class _Outcome:
 
 
 def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
-                on_start: Callable[[int], None] | None, progress: bool) -> _Outcome:
+                on_start: Callable[[int], None] | None, progress: bool, guard: RunGuard | None = None) -> _Outcome:
     """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
     channels, dt, n = plan.channels, plan.dt, plan.cycles
     if plan.base:
@@ -354,6 +358,8 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 rec.record(i, k, fb, u, r)
                 check_and_write(ch, k, dt, fb.position, r, u)
             out.cycles = k + 1
+            if guard is not None and (over := guard.check(k + 1)) is not None:
+                raise CycleFault(StopReason.FAULT, Fault(FaultKind.RUN_CHECK.value, over[0], k, over[1]), True)
             if k == 0 and on_start is not None:
                 on_start(n)
             if bar is not None and k % 250 == 0:

@@ -365,10 +365,11 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
             if bar is not None and k % 250 == 0:
                 bar.update(min(250, n - bar.n))
     except CycleFault as exc:
-        out.stop, out.fault, out.detail = exc.stop, exc.fault, exc.fault.detail
+        out.stop, out.fault = exc.stop, exc.fault
         if exc.recorded:
             out.cycles = k + 1
         _safe_stop(channels, out.fault)
+        out.detail = out.fault.detail  # with the drive's own reason, read after the stop
     except (_Interrupted, KeyboardInterrupt):
         out.stop = StopReason.INTERRUPTED
         out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
@@ -742,6 +743,8 @@ def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
             if code is None and getattr(faulted, "last_emcy", None):
                 code = faulted.last_emcy[0]
             fault.error_code = code
+            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+                fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

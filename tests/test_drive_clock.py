@@ -248,6 +248,8 @@ def test_paced_in_process_a_late_master_is_caught_by_the_drive_deadline():
     assert drive.drive.error_code == 0x8250  # the drive's own reaction: RPDO deadline
     assert f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault") and f.safe_after["x"] is not None
     assert res.trace.meta["fault_kind"] == f.kind and res.trace.meta["paced"] == "wall clock"
+    assert res.detail.endswith("(its 0x603F: 0x8250: RPDO timeout (the master's setpoint came too late))")
+    assert res.trace.meta["stop_detail"] == res.detail
 
 
 def test_paced_in_process_a_master_within_the_deadline_is_not_caught():

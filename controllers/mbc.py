@@ -271,13 +271,12 @@ class Mbc(Controller):
         fk = self.model.held_known_forces(profile, tt, self.spread) if s.friction_ff else np.zeros(n_t)
         return uff, fk
 
-    def prepare(self, profile: Any, times: np.ndarray) -> None:
-        """Compute the feed-forward for the whole run ahead (the servo loop calls this once, after reset,
-        with the run's cycle times; step k then uses row k)."""
+    def preview(self, profile: Any, times: np.ndarray) -> tuple[list[float], ...] | None:
+        """The feed-forward for the whole run ahead, one row per cycle of ``times`` (controllers/base.py:
+        ``prepare`` installs it, step k then uses row k). Reads only the design: safe beside ``step``."""
         times = np.asarray(times, dtype=float)
         if len(times) < 2:
-            self._table = None
-            return
+            return None
         uff, fk = self.feedforward(profile, times)
         xref = self.model.reference_states(profile, times[0] + self.dt * (np.arange(len(times)) + 1.0),
                                            self.spread)
@@ -292,7 +291,10 @@ class Mbc(Controller):
         r = profile.sample(times)[0]
         # the reference state enters the law only as K xref: folded into the feed-forward ahead of time
         ffk = uff + xref @ self.d.K
-        self._table = (r.tolist(), ffk.tolist(), fk.tolist())
+        return r.tolist(), ffk.tolist(), fk.tolist()
+
+    def use_preview(self, preview: tuple[list[float], ...] | None) -> None:
+        self._table = preview
         self._k = 0
 
     def _row(self, reference: Reference) -> tuple[float, float]:

@@ -187,6 +187,27 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
+def run_preview(controller: Controller, profile: Profile, times: np.ndarray, offset: float = 0.0) -> object:
+    """The controller's reference preview for a run of ``profile`` at the run's cycle times ``times``
+    (controllers/base.py ``preview``), the profile's positions shifted by ``offset`` (a relative run of
+    the resident loop). A one-shot run prepares the controller with the same profile and times
+    (:func:`run_channels`); the resident loop computes this outside its cycle (``Controller.preview``
+    only reads) and installs it with ``use_preview`` in the cycle the run takes the axis."""
+    return controller.preview(_Offset(profile, offset) if offset else profile, np.asarray(times, dtype=float))
+
+
+class _Offset:
+    """``profile`` with its positions shifted by ``offset`` m (a relative run)."""
+
+    def __init__(self, profile: Profile, offset: float):
+        self._p, self._offset = profile, offset
+        self.duration = profile.duration
+
+    def sample(self, t: np.ndarray):
+        r, *rest = self._p.sample(t)
+        return (np.asarray(r) + self._offset, *rest)
+
+
 #: cycles of reference sampled at a time: a run holds one chunk of its references, whatever its length
 REF_CHUNK = 8192
 

@@ -270,3 +270,43 @@ def test_after_a_paced_run_the_drive_is_back_on_lockstep_time():
     assert res.ok
     lockstep = drive.network.lockstep
     assert isinstance(lockstep, Lockstep) and lockstep._wall is None and not drive._served
+
+
+def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_path):
+    """The session's loop on the wall clock (controllers/loop.py) paces the in-process drives as
+    ``trace --paced`` does: a loop 200 ms late (a jump injected through its clock, so the outcome does not
+    depend on how busy the machine is; below its own stall bound) is caught by the drive's RPDO deadline
+    (50 ms here, so that real scheduling hiccups of a loaded test machine do not count)."""
+    import time
+
+    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    object.__setattr__(ac, "rpdo_timeout_ms", 50)
+    m = open_machine(cfg, ["x"])
+    axis, drive = m.axes["x"], m.drives["x"]
+    ch = Channel(axis, make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None, ac.limits)
+    jump = {"s": 0.0}
+    loop = ServoLoop([ch], clock="wall", stall_s=5.0, fault_dir=tmp_path,
+                     now=lambda: time.perf_counter() + jump["s"])
+    loop.start()
+    try:
+        rt = loop.axes["x"]
+        rt.state = AxisState.ENABLING
+        loop.submit(axis.enable)
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
+        assert drive.drive.error_code == 0
+        jump["s"] = 0.2
+        assert loop.run_until(lambda: loop.faults, 10.0)
+        assert drive.drive.error_code == 0x8250  # the drive's own reaction: RPDO deadline, on the loop's clock
+        assert "0x8250" in loop.faults[0].detail and loop.status()["stalls"] == 0
+    finally:
+        loop.close()
+        m.close()
+    assert axis.power is not cia402.PowerState.OPERATION_ENABLED
+    assert drive.network.lockstep._wall is None  # the loop ended: the drive is back on SYNC time

@@ -97,13 +97,15 @@ following_time_s = 0.01
 
 [checks]
 # fractions of a run's cycles: past *_warn a completed run says "completed with warnings" (exit 4),
-# past *_fault it is a fault (exit 3)
+# past *_fault it is a fault (exit 3) that stops the run when it is passed: mid-run the fraction is of
+# the cycles so far, but of at least fault_min_cycles (or the whole run if shorter)
 missed_deadlines_warn = 0.005   # --paced: cycles that started more than half a cycle late
 missed_deadlines_fault = 0.05
 clipped_warn = 0.01             # cycles with the effort clipped at limits.max_effort
 clipped_fault = 0.5
 extrapolated_warn = 0.005       # cycles run on an extrapolated position (TPDO lost or malformed)
 extrapolated_fault = 0.05
+fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines in the first second, stop a run
 """
 
 
@@ -386,7 +388,8 @@ def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:
 
 
 def _checks(raw: Any, src: str) -> RunChecks:
-    """[checks]: fractions of a run's cycles past which a completed run warns (exit 4) or faults (exit 3)."""
+    """[checks]: fractions of a run's cycles past which a completed run warns (exit 4) or a run faults (exit 3,
+    mid-run: controllers/run_checks.RunGuard), and the fewest cycles a fault fraction is judged on mid-run."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: checks: expected a table")
     known = {f.name for f in fields(RunChecks)}

@@ -115,3 +115,27 @@ def test_cycle_propagation_is_the_exact_discretisation_over_a_cycle():
             n = sim.substeps
             assert np.allclose(sim._t1["P" + tag][0, n], e[:2, :2], rtol=0, atol=1e-12)
             assert np.allclose(sim._t1["Q" + tag][0, n], e[:2, 2], rtol=1e-12, atol=1e-18)
+
+
+@pytest.mark.parametrize("spec", [
+    load_plant("two-mass"),  # the same matrices in every state of motion: gathered once
+    load_plant("two-mass").with_effect("offset", force=0.05).with_effect("coulomb", force_pos=0.02, force_neg=0.04),
+    BASE.with_effect("resonance", frequency=40.0, damping=0.05),  # the table's direction selects them
+    BASE.with_effect("backlash", width=20e-6),  # every state of motion
+], ids=["two-mass", "two-mass+offset+coulomb", "resonance", "backlash"])
+def test_two_bodies_equal_plant_step(data, spec):
+    pos, vel, effort = data
+    scale = 0.01 if spec.effort_unit == "V" else 1.0  # the two-mass axis takes volts
+    win = make_windows(pos, vel, effort * scale, DT, 150, starts=np.array([100, 850, 2050]))
+    plant = spec.build(DT)
+    sim = BatchSim([plant]).run(win)
+    init = BatchSim([plant])._initial(win)
+    for w in range(len(win.start)):
+        st = plant.initial_state()
+        st.s = [float(a[w, 0]) for a in init]
+        st.t = float(win.t0[w])
+        xs = []
+        for j in range(win.length):
+            plant.step(st, float(win.applied[w, win.history + j]))
+            xs.append(plant.position(st))
+        assert np.max(np.abs(np.array(xs) - sim[w, 0])) < 1e-12

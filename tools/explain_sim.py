@@ -427,69 +427,106 @@ class BatchSim:
 
     def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None,
                  with_velocity: bool = False) -> Any:
+        """Two bodies, Plant._step_two operation for operation on flat (window x candidate) rows.
+
+        The substep matrices of every element are gathered in one take from a coefficient-major table
+        (24 rows: A row by row, then B), once per run where no state of motion changes them."""
         W, C, L = len(win.start), len(self.plants), win.length
+        N = W * C
         init = self._initial(win)
         if internal is not None:
             init[0] = init[2] + internal[0]
             init[1] = init[3] + internal[1]
-        s = np.stack(init, axis=-1)  # (W, C, 4)
+        x0, v0, x1, v1 = (np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init)
         out = np.empty((W, C, L))
         out_v = np.empty((W, C, L)) if with_velocity else None
-        h = self.h
-        cidx = np.broadcast_to(np.arange(C)[None, :], (W, C))
-        gap = self.gap[None, :]
-        half = 0.5 * gap
-        kh = self.stiff[None, :] * half
+        h, dt, H = self.h, self.dt, win.history
+        cid = np.tile(np.arange(C), W)
+        wid = np.repeat(np.arange(W), C)
+        A, B = self.A, self.B
+        table = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()  # (24, C * 8)
+        base = cid * 8
         has_gap = bool(np.any(self.gap > 0))
-        t0 = win.t0[:, None]
+
+        def same(a: int, b: int) -> bool:
+            return bool(np.array_equal(A[:, a], A[:, b]) and np.array_equal(B[:, a], B[:, b]))
+
+        # which states of motion select other matrices (index: engaged 4, body 0 moving - 2, table moving - 1)
+        fixed = not has_gap and same(4, 6) and same(5, 7) and same(4, 5)
+        G = np.take(table, base + 4, axis=1) if fixed else None
+        gap, kh = self.gap[cid], self.stiff[cid] * (0.5 * self.gap[cid])
+        half = 0.5 * gap
+        lim_in = self.limit[cid]
+        forces = self.has_offset or self.has_periodic
+        zeros = np.zeros(N)
+        off = self.offset[cid] if forces else zeros
+        if self.has_periodic:
+            pa, pk, pp = self.per_amp[cid], self.per_k[cid], self.per_phase[cid]
+        if self.has_dist:
+            da, dw, t0 = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
+        if self.delayed:
+            dc, df = self.delay_cycles[cid], self.delay_frac[cid]
+        fcp, fcn = self.fc_pos[cid].T, self.fc_neg[cid].T  # (2, N)
+        exc, stv = self.st_exc[cid].T, self.st_vel[cid].T
+        stribeck = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
         for j in range(L):
-            f_in = self._inputs(win, j, 0)
+            if self.delayed:
+                cur = win.applied[wid, H + j - dc]
+                prev = win.applied[wid, H + j - dc - 1]
+            else:
+                f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
             for i in range(self.substeps):
-                x0, v0, x1, v1 = s[..., 0], s[..., 1], s[..., 2], s[..., 3]
-                f0 = self._inputs(win, j, i) if self.delayed else f_in
-                f1 = np.zeros((W, C))
-                if self.has_offset or self.has_periodic:
-                    f1 = f1 + self.offset[None, :]
-                    if self.has_periodic:
-                        xm = x1 + 0.5 * h * v1
-                        f1 = f1 + self.per_amp[None, :] * np.sin(self.per_k[None, :] * xm + self.per_phase[None, :])
+                if self.delayed:
+                    w_prev = np.clip((df * dt - i * h) / h, 0.0, 1.0)
+                    f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
+                else:
+                    f0 = f_in
+                f1 = off
+                if self.has_periodic:
+                    xm = x1 + 0.5 * h * v1
+                    f1 = f1 + pa * np.sin(pk * xm + pp)
                 if self.has_dist:
-                    dist = self.dist_a[None, :] * np.sin(self.dist_w[None, :] * (t0 + j * self.dt + (i + 0.5) * h))
+                    dist = da * np.sin(dw * (t0 + j * dt + (i + 0.5) * h))
                     f0 = f0 + dist
                     f1 = f1 + dist
-                engaged = np.ones((W, C), dtype=bool)
-                if has_gap:
-                    rel = x0 - x1
-                    over = (rel > half) & (gap > 0)
-                    under = (rel < -half) & (gap > 0)
-                    push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
-                    f0 = f0 + push
-                    f1 = f1 - push
-                    engaged = over | under | (gap <= 0)
-                d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
-                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
-                k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
-                As = self.A[cidx, k]  # (W, C, 4, 4)
-                Bs = self.B[cidx, k]  # (W, C, 4, 2)
-                new = np.einsum("wcij,wcj->wci", As, s) + Bs[..., 0] * f0[..., None] + Bs[..., 1] * f1[..., None]
+                if G is None:
+                    engaged = True
+                    if has_gap:
+                        rel = x0 - x1
+                        over = (rel > half) & (gap > 0)
+                        under = (rel < -half) & (gap > 0)
+                        push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
+                        f0 = f0 + push
+                        f1 = f1 - push
+                        engaged = over | under | (gap <= 0)
+                    d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
+                    d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
+                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                    Gs = np.take(table, base + k, axis=1)
+                else:
+                    Gs = G
+                s = (x0, v0, x1, v1)
+                new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
+                       + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
                 for body in (1, 0):
                     if not self.coulomb[body]:
                         continue
                     vi = 2 * body + 1
-                    vf = new[..., vi]
-                    g = Bs[..., vi, body]
+                    vf = new[vi]
+                    g = Gs[16 + 2 * vi + body]
                     positive = vf > 0.0
-                    lim = self._coulomb_limit(body, s[..., vi], positive)
-                    direction = np.where(positive, 1.0, -1.0)
-                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, -direction * lim)
-                    lam = np.where(vf == 0.0, 0.0, lam)
-                    new = new + Bs[..., body] * lam[..., None]
-                    vnew = new[..., vi]
-                    new[..., vi] = np.where(np.abs(vnew) < 1e-15, 0.0, vnew)
-                s = new
-            out[:, :, j] = s[..., 2]
+                    lim = np.where(positive, fcp[body], fcn[body])
+                    if stribeck[body]:
+                        r_ = s[vi] / stv[body]
+                        lim = lim + exc[body] * np.exp(-r_ * r_)
+                    # Moreau, as in _substeps_one; the impulse through the body's column of B
+                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
+                    new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
+                    new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
+                x0, v0, x1, v1 = new
+            out[:, :, j] = x1.reshape(W, C)
             if out_v is not None:
-                out_v[:, :, j] = s[..., 3]
+                out_v[:, :, j] = v1.reshape(W, C)
         return (out, out_v) if with_velocity else out
 
 

@@ -47,9 +47,14 @@ rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): 
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
-# controller = "mbc" (no settings) tracks the circle within 0.10 um against ASMC's 0.19, but with a 28 %
-# rougher effort (1.34 against 1.05 N per cycle): by tune's cost J ASMC is ahead, so x keeps the paper's.
-# With an unmodelled Stribeck effect and noise mbc holds 11 um against 38 (bench/precision.py, README).
+# controller = "mbc" (no settings) tracks the circle within 0.09 um against ASMC's 0.19, holds where a
+# move ends (0.03 um; ASMC, without integral action, 4 um off the Coulomb friction), and with an unmodelled
+# Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over the circle
+# reads 1.34 against 1.05 N per cycle: both flip the effort by the friction (93 N) at the two reversals,
+# mbc ahead of the transport delay so its second flip is the run's last cycle, ASMC's one cycle after it
+# (over 10.5 s: 1.31 against 1.38). x keeps the paper's ASMC: its loop is soft enough that `bode` sees
+# the plant; under mbc's stiffer loop the axis sticks in its Coulomb friction and bode reports a false
+# 10.5 Hz mode.
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits

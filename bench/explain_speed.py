@@ -14,10 +14,11 @@ fresh process, imports, report and PNG included):
 "Under load" = while one CPU-bound process started by this script (a busy loop, stopped after) runs:
 the issue's "the load of one other job" on this 2-core machine. CPU seconds are those of the explain
 process and its worker processes (getrusage of children). explain picks its worker count itself
-(tools/explain.choose_workers); set DRIVECTL_EXPLAIN_WORKERS to force one.
+(tools/explain.choose_workers); ``--workers N`` forces N (DRIVECTL_EXPLAIN_WORKERS), ``--cases`` picks cases.
 
-    python bench/explain_speed.py            # table
-    python bench/explain_speed.py --json     # exactly one JSON object on stdout
+    python bench/explain_speed.py                      # table
+    python bench/explain_speed.py --json               # exactly one JSON object on stdout
+    python bench/explain_speed.py --workers 1 --cases trace10
 
 JSON keys (seconds; null where the case was skipped): ``trace10_wall_s``, ``trace10_cpu_s``,
 ``trace10_wall_loaded_s``, ``trace10_cpu_loaded_s``, ``record25_wall_s``, ``record25_cpu_s``,
@@ -100,15 +101,27 @@ def make_trace10(folder: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    ap.add_argument("--workers", type=int, help="explain's worker processes (default: its own choice)")
+    ap.add_argument("--cases", default="trace10,record25", help="comma-separated: trace10, record25")
     args = ap.parse_args(argv)
+    wanted = [c.strip() for c in args.cases.split(",") if c.strip()]
+    if bad := [c for c in wanted if c not in TARGETS]:
+        ap.error(f"--cases: unknown {', '.join(bad)} (known: {', '.join(TARGETS)})")
+    if args.workers is not None:
+        if args.workers < 1:
+            ap.error("--workers: must be >= 1")
+        os.environ["DRIVECTL_EXPLAIN_WORKERS"] = str(args.workers)
     res: dict[str, Any] = {"load_avg_1min": os.getloadavg()[0]}
     notes = []
     with tempfile.TemporaryDirectory() as tmp:
         tmpd = Path(tmp)
-        cases: dict[str, tuple[Path, str] | None] = {"trace10": (make_trace10(tmpd / "t10"), "rigid-x")}
+        cases: dict[str, tuple[Path, str] | None] = {"trace10": None, "record25": None}
+        if "trace10" in wanted:
+            cases["trace10"] = (make_trace10(tmpd / "t10"), "rigid-x")
         d = emps_dir()
-        if d is None:
-            cases["record25"] = None
+        if "record25" not in wanted:
+            pass
+        elif d is None:
             notes.append("record25: EMPS records absent (set DRIVECTL_EMPS_DIR), skipped")
         else:
             plant = tmpd / "emps-reference.plant.toml"

@@ -11,12 +11,15 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from drivectl.plant_emulator.models import load_plant
+from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.tools import explain_sim
 from drivectl.tools.explain_sim import BatchSim, make_windows
 
 DT = 0.001
 BASE = load_plant("rigid-x")
+#: direction-independent friction (as the EMPS reference model): the kernel skips the direction there
+SYMMETRIC = PlantSpec("sym", "rigid", "N", {"mass": 95.0, "c_pos": 200.0, "c_neg": 200.0, "fc_pos": 20.0,
+                                             "fc_neg": 20.0})
 
 
 @pytest.fixture(scope="module")
@@ -51,6 +54,7 @@ BATCHES = {
     "coulomb": [BASE.with_effect("coulomb", force_pos=a, force_neg=b) for a, b in ((0.0, 0.0), (20.0, 80.0))],
     "mass and saturation": [BASE.with_effect("mass", mass=60.0), BASE.with_effect("saturation", limit=50.0)],
     "spring and offset": [BASE.with_effect("spring", stiffness=3.0).with_effect("offset", force=-5.0)],
+    "symmetric": [SYMMETRIC, SYMMETRIC.with_effect("offset", force=3.0).with_effect("spring", stiffness=50.0)],
 }
 
 
@@ -83,7 +87,7 @@ def test_batch_equals_each_member_alone(data):
         assert np.max(np.abs(together[:, c] - alone)) < 1e-15
 
 
-@pytest.mark.parametrize("name", ["spring", "offset", "viscous per direction"])
+@pytest.mark.parametrize("name", ["spring", "offset", "viscous per direction", "symmetric"])
 def test_whole_cycles_equal_plant_step(data, name):
     pos, vel, effort = data
     win = make_windows(pos, vel, effort, DT, 150, starts=np.array([100, 850, 2050]))

@@ -234,6 +234,7 @@ class BatchSim:
         t["dc"], t["df"] = self.delay_cycles, self.delay_frac
         self._t1 = t
         self._rigid = bool(np.all(A[:, [0, 2], 0, 0] == 1.0) and np.all(A[:, [0, 2], 1, 0] == 0.0))
+        self._symmetric = bool(np.array_equal(A[:, 0], A[:, 2]) and np.array_equal(B[:, 0], B[:, 2]))
         self._stribeck = bool(np.any(self.st_exc[:, 0] != 0))
         # whole cycles need an input that is constant over the cycle and friction that is a constant force
         # ... and enough substeps to be worth it: with 2 the per-cycle bookkeeping costs what it saves
@@ -318,13 +319,17 @@ class BatchSim:
             u = np.where(pos, f - t["fcp"][None, :], f + t["fcn"][None, :])
         else:
             u = f
-        p00 = np.where(pos, Pp[None, :, n, 0, 0], Pn[None, :, n, 0, 0])
-        p01 = np.where(pos, Pp[None, :, n, 0, 1], Pn[None, :, n, 0, 1])
-        p11 = np.where(pos, Pp[None, :, n, 1, 1], Pn[None, :, n, 1, 1])
-        q0 = np.where(pos, Qp[None, :, n, 0], Qn[None, :, n, 0])
-        q1 = np.where(pos, Qp[None, :, n, 1], Qn[None, :, n, 1])
+
+        def sel(ap: np.ndarray, an: np.ndarray) -> np.ndarray:
+            return ap if self._symmetric else np.where(pos, ap, an)
+
+        p00 = sel(Pp[None, :, n, 0, 0], Pn[None, :, n, 0, 0])
+        p01 = sel(Pp[None, :, n, 0, 1], Pn[None, :, n, 0, 1])
+        p11 = sel(Pp[None, :, n, 1, 1], Pn[None, :, n, 1, 1])
+        q0 = sel(Qp[None, :, n, 0], Qn[None, :, n, 0])
+        q1 = sel(Qp[None, :, n, 1], Qn[None, :, n, 1])
         if self._spring:
-            p10 = np.where(pos, Pp[None, :, n, 1, 0], Pn[None, :, n, 1, 0])
+            p10 = sel(Pp[None, :, n, 1, 0], Pn[None, :, n, 1, 0])
             xn = p00 * x + p01 * v + q0 * u
             vn = p10 * x + p11 * v + q1 * u
         else:
@@ -401,15 +406,19 @@ class BatchSim:
                     f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
             if self.has_dist:
                 f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
-            d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
-            b0 = np.where(d, co["b0p"], co["b0n"])
-            b1 = np.where(d, co["b1p"], co["b1n"])
-            if rigid:  # a00 = 1 and a10 = 0 exactly: the same numbers without four operations
-                xf = x + np.where(d, co["a01p"], co["a01n"]) * v + b0 * f
-                vf = np.where(d, co["a11p"], co["a11n"]) * v + b1 * f
+            if self._symmetric:  # the same coefficients either way: no direction to look at
+                a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
             else:
-                xf = np.where(d, co["a00p"], co["a00n"]) * x + np.where(d, co["a01p"], co["a01n"]) * v + b0 * f
-                vf = np.where(d, co["a10p"], co["a10n"]) * x + np.where(d, co["a11p"], co["a11n"]) * v + b1 * f
+                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
+                a00, a01 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a01p"], co["a01n"])
+                a10, a11 = np.where(d, co["a10p"], co["a10n"]), np.where(d, co["a11p"], co["a11n"])
+                b0, b1 = np.where(d, co["b0p"], co["b0n"]), np.where(d, co["b1p"], co["b1n"])
+            if rigid:  # a00 = 1 and a10 = 0 exactly: the same numbers without four operations
+                xf = x + a01 * v + b0 * f
+                vf = a11 * v + b1 * f
+            else:
+                xf = a00 * x + a01 * v + b0 * f
+                vf = a10 * x + a11 * v + b1 * f
             if coul:
                 positive = vf > 0.0
                 lim_c = np.where(positive, co["fcp"], co["fcn"])

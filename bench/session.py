@@ -13,8 +13,8 @@ the loop in its own thread at 1 kHz on the wall clock, ``drivectl.connect(clock=
   interval (a tenth of a cycle while the loop runs; off: Python's 5 ms, how long the plotting thread may
   hold the GIL before the loop's thread gets it), and drivectl's own plots drawn in a child process
   (matplotlib renders in C holding the GIL for tens of ms);
-* move: a 10 mm move_to under mbc, the distance from the target once it settled (um; the embedded
-  default ASMC has no integral action and holds x about 4 um off);
+* move: a 10 mm move_to under mbc, the distance from the target once it settled (um; paper 004's
+  ASMC has no integral action and holds x about 4 um off);
 * jog: a jog at 10 mm/s renewed for 0.5 s and then left alone: the time from the last renewal until
   the axis stands (the 200 ms dead-man interval plus the controlled stop), ms.
 
@@ -77,7 +77,7 @@ def _held(seconds: float, *, busy: bool, out: Path, plot_apart: bool = True, **k
 
 
 def _move_and_jog() -> tuple[float, float]:
-    # under mbc: the default ASMC has no integral action and holds x about 4 um off any target
+    # under mbc (x's default; pinned here): paper 004's ASMC has no integral action and holds x ~4 um off
     import dataclasses
 
     from drivectl.tools.config import load_config

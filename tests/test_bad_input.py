@@ -53,6 +53,12 @@ def line_of(text: str, line: str) -> int:
     return text.splitlines().index(line) + 1
 
 
+#: x under paper 004's ASMC with law 14 (the embedded comment's recipe): its settings' checks are exercised there
+X_MBC = 'controller = "mbc"              # mbc'
+CONFIG_ASMC = edit(edit(CONFIG, X_MBC, 'controller = "asmc"             # mbc'),
+                   "# law = 14                      # paper 004", "law = 14                        # paper 004")
+
+
 def eds_without(index: str) -> str:
     """The emulated drive's EDS without object ``index``: its section and sub-sections gone, and the object
     lists renumbered with their counts lowered, so that the file stays well-formed."""
@@ -96,7 +102,7 @@ CASES = [
     ("config-axes-missing", "config", CONFIG[: CONFIG.index("[axes.x]\n")], SIM, ("{path}", "axes:")),
     ("config-axis-missing-plant", "config", edit(CONFIG, 'plant = "rigid-x"', "# plant"), SIM,
      ("{path}", "axes.x.plant", "missing")),
-    ("config-axis-missing-controller", "config", edit(CONFIG, 'controller = "asmc"             #', "#"), SIM,
+    ("config-axis-missing-controller", "config", edit(CONFIG, X_MBC, "# mbc"), SIM,
      ("{path}", "axes.x.controller", "missing")),
     ("config-axis-missing-profile", "config", edit(CONFIG, 'profile = "circle"              #', "#"), SIM,
      ("{path}", "axes.x.profile", "missing")),
@@ -137,13 +143,13 @@ CASES = [
     ("config-encoder-wrong-type", "config", edit(CONFIG, "encoder_m_per_count = 76.29e-9\nmax_lost",
                                                  'encoder_m_per_count = "fine"\nmax_lost'), SIM,
      ("{path}", "axes.x.encoder_m_per_count", "'fine'")),
-    ("config-controller-negative-gain", "config", edit(CONFIG, "law = 14                        #",
+    ("config-controller-negative-gain", "config", edit(CONFIG_ASMC, "law = 14                        #",
                                                        "gamma = -50.0\nlaw = 14 #"), SIM,
      ("{path}", "axes.x.controller_settings", "gamma", "-50")),
-    ("config-controller-gain-wrong-type", "config", edit(CONFIG, "law = 14                        #",
+    ("config-controller-gain-wrong-type", "config", edit(CONFIG_ASMC, "law = 14                        #",
                                                          'k_bar = "high"\nlaw = 14 #'), SIM,
      ("{path}", "axes.x.controller_settings", "k_bar", "'high'")),
-    ("config-controller-gain-array", "config", edit(CONFIG, "law = 14                        #",
+    ("config-controller-gain-array", "config", edit(CONFIG_ASMC, "law = 14                        #",
                                                     "gamma = [50.0, 60.0]\nlaw = 14 #"), SIM,
      ("{path}", "axes.x.controller_settings", "gamma", "[50.0, 60.0]")),
     ("config-nftsm-beta-out-of-range", "config", edit(edit(CONFIG, "# accel_filter_hz = 150.0\n",
@@ -151,14 +157,13 @@ CASES = [
                                                       'controller = "mbc"              # paper 000',
                                                       'controller = "pid-nftsm"        # paper 000'), SIM_Z,
      ("{path}", "axes.z.controller_settings", "beta", "(0.5, 1)", "1.2")),
-    ("config-controller-law-not-a-choice", "config", edit(CONFIG, "law = 14                        #",
+    ("config-controller-law-not-a-choice", "config", edit(CONFIG_ASMC, "law = 14                        #",
                                                           "law = 15 #"), SIM,
      ("{path}", "axes.x.controller_settings", "law", "15")),
-    ("config-unknown-controller-setting", "config", edit(CONFIG, "law = 14                        #",
+    ("config-unknown-controller-setting", "config", edit(CONFIG_ASMC, "law = 14                        #",
                                                          "zeta = 0.7\nlaw = 14 #"), SIM,
      ("{path}", "axes.x.controller_settings", "zeta", "unknown setting")),
-    ("config-unknown-controller", "config", edit(CONFIG, 'controller = "asmc"             #',
-                                                 'controller = "lqr"             #'), SIM,
+    ("config-unknown-controller", "config", edit(CONFIG, X_MBC, 'controller = "lqr"              # mbc'), SIM,
      ("{path}", "axes.x.controller", "'lqr'")),
     ("config-limits-not-a-pair", "config", edit(CONFIG, "position_m = [-0.1, 0.1]   ", "position_m = 0.1   "), SIM,
      ("{path}", "axes.x.limits.position_m", "[lower, upper]", "0.1")),

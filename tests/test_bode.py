@@ -132,3 +132,48 @@ def test_model_frf_low_frequency_is_the_rigid_mass() -> None:
     assert abs(h[0]) == pytest.approx(1 / ((1.3016 + 0.1484) * w * w), rel=0.02)
     assert model_modes(spec) == [pytest.approx(89.17, abs=0.05)]
     assert model_modes(load_plant("rigid-x")) == []
+
+
+def test_friction_axis_measured_about_a_velocity_bias_has_no_false_mode() -> None:
+    # rigid-x under mbc (the default): holding still, its stiff loop leaves the axis stuck in its Coulomb
+    # friction and the stick-slip reads as a ~10.5 Hz "mode"; sliding at a constant velocity it is the plant
+    cfg = load_config(None)
+    assert cfg.axis("x").controller == "mbc"
+    held = measure_frf(cfg, "x", sim=True, seconds=5, bias_velocity=0.0)
+    assert held.ok and held.bias_velocity == 0.0
+    assert held.mode is not None and 8.0 < held.mode_hz < 13.0  # the artefact the bias removes
+    res = measure_frf(cfg, "x", sim=True, seconds=5)
+    assert res.ok, res.detail
+    assert res.bias_velocity == pytest.approx(0.01)  # the 10 mm/s cap: 5 s at it travel 50 mm of the 200
+    assert res.stood_share == 0.0  # it slid all along
+    assert res.mode is None and res.model_mode_hz is None
+    assert res.amplitude < held.amplitude  # sliding, the excitation need not beat the breakaway force
+    band = (res.freqs <= 100) & (res.coherence > 0.95)
+    assert band.sum() > 90
+    err_db = np.abs(20 * np.log10(np.abs(res.frf[band]) / np.abs(res.model[band])))
+    assert err_db.max() < 0.5
+    err_deg = np.abs(np.degrees(np.angle(res.frf[band] / res.model[band])))
+    assert err_deg.max() < 5.0
+    # the reference went once through the bias, centred on the hold point, and came back to rest
+    tr = res.trace
+    assert tr.ref[0] == pytest.approx(-0.025) and tr.ref[-1] == pytest.approx(0.025, abs=1e-6)
+
+
+def test_bias_ramp_is_smooth_and_travels_what_it_says() -> None:
+    from drivectl.tools.bode import BiasRamp
+
+    prof = BiasRamp(-0.02, 0.008, 5.5)
+    t = np.arange(0, 5.5 + 1e-9, 1e-4)
+    p, v, a, _ = prof.sample(t)
+    assert p[0] == -0.02 and v[0] == 0.0 and v[-1] == pytest.approx(0.0, abs=1e-12)
+    assert p[-1] - p[0] == pytest.approx(prof.travel) and prof.travel == pytest.approx(0.04)
+    assert np.abs(np.diff(p) / 1e-4 - 0.5 * (v[1:] + v[:-1])).max() < 1e-6  # position integrates velocity
+    assert np.abs(np.diff(v)).max() < 1e-5 and np.abs(a).max() < 0.03  # no step anywhere
+    assert np.all(v[(t > 0.5) & (t < 5.0)] == 0.008)
+
+
+def test_bias_that_leaves_the_soft_limits_exit_2(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _run(["--axis", "x", "--sim", "--bias-velocity", "0.05", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "axes.x.limits.position_m" in err and "--bias-velocity" in err
+    assert not list(tmp_path.iterdir())

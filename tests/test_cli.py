@@ -21,7 +21,8 @@ def test_trace_axis_x_writes_trace_plot_and_summary(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     tr = Trace.read(tmp_path / "x.csv")
-    assert tr.meta["plant"] == "rigid-x" and tr.meta["controller"] == "asmc" and tr.meta["law"] == "14"
+    # x runs mbc by default (paper 004's ASMC is selectable: tests/test_controllers_004.py)
+    assert tr.meta["plant"] == "rigid-x" and tr.meta["controller"] == "mbc" and "law" not in tr.meta
     assert tr.meta["stop"] == "completed" and len(tr) == 10001
     assert (tmp_path / "x.png").stat().st_size > 10_000
     assert "max um" in out and "wrote" in out

@@ -91,8 +91,8 @@ def test_each_run_writes_a_new_trace_and_axis_csv_names_the_latest(tmp_path, cap
 def test_controller_override_keeps_the_settings_that_apply_and_names_the_dropped(tmp_path, capsys):
     cfg = tmp_path / "machine.toml"
     text = DEFAULT_CONFIG_TOML
-    for a, b in (('controller = "asmc"             #', 'controller = "pid"             #'),
-                 ("law = 14                        # paper 004 gain law (11..14)", "kp = 2e5\nkd = 3e3")):
+    for a, b in (('controller = "mbc"              #', 'controller = "pid"              #'),
+                 ("# law = 14                      # paper 004 gain law (11..14)", "kp = 2e5\nkd = 3e3")):
         assert text.count(a) >= 1
         text = text.replace(a, b, 1)
     cfg.write_text(text)

@@ -5,6 +5,22 @@ added to the controller's effort (:class:`ExcitedController`). The effort column
 the total effort the drive applies, the position column what the encoder measures, and the loop
 stays closed (the controller keeps the axis in place; a limit ends the run as in any trace).
 
+Friction: where the model has Coulomb friction (a rigid feed axis), an axis holding still sticks
+whenever the loop's effort plus the excitation stays under the breakaway force, and the response is
+that of stick-slip, not of the plant: a stiff loop (one that cancels a low-frequency force, as ``mbc``
+does) keeps the axis stuck longest and bode then reads a false low-frequency "mode". There the
+measurement runs about a slow constant-velocity bias instead (:class:`BiasRamp`; the standard way to
+take a friction axis's FRF): the reference travels at ``v_b`` across the soft-limit range, ramped up
+inside the first, discarded period and down after the last; at a velocity that never reverses, Coulomb
+friction is one constant force, which the constant detrend removes, and the small-signal response is
+the linear plant's, whatever the controller. ``v_b`` is the fastest up to 10 mm/s whose travel keeps
+within 80 % of the soft limits (rigid-x, 20 s: 8 mm/s); sliding, the excitation need not beat the
+breakaway force, so its default peak is the largest whose own velocity (open loop) stays under half of
+``v_b`` (rigid-x: 31 N against 287 N when holding). The run checks the velocity it measured and says
+how much of the time the axis stood or reversed. ``bias_velocity`` (``--bias-velocity``) sets ``v_b``;
+0 holds still, as on a frictionless model (two-mass: it holds). The response is taken of ``pos - ref``,
+which removes the ramp; on a hold the reference is constant and nothing changes.
+
 Estimation: the first period is dropped (transient), the remaining whole periods are averaged with
 Welch's method using a rectangular window one period long, so every excited line falls exactly on
 a bin (no leakage). Because the loop is closed, the plain ``H1 = S_uy / S_uu`` is biased wherever
@@ -66,6 +82,16 @@ DEFAULT_AMPLITUDE_RATED = 0.5
 COULOMB_MULTIPLE = 6.0
 #: ... and at most this fraction of max_effort
 MAX_DEFAULT_FRACTION = 0.25
+#: the slow constant-velocity bias on an axis whose model has Coulomb friction (see the module doc): at
+#: most this fast (a slow feed) ...
+BIAS_MAX_M_S = 0.01
+#: ... and travelling at most this share of the soft-limit range about the hold point
+BIAS_LIMIT_SHARE = 0.8
+#: the default excitation under a bias drives the model's linear part (open loop) to at most 1 / this
+#: of the bias velocity, so the velocity never crosses zero and the friction stays one constant force
+BIAS_MARGIN = 2.0
+#: ... ramped up (and down after the last period) over this long, inside the first, discarded period
+BIAS_RAMP_S = 0.5
 #: a peak of the accelerance must rise this much (dB) above its surroundings to be called a mode
 MIN_PROMINENCE_DB = 6.0
 #: ... the phase, delays removed, must drop at least this much (deg) across it (a mode: ~180)
@@ -159,6 +185,53 @@ class Hold:
         t = np.asarray(t, dtype=float)
         z = np.zeros_like(t)
         return z + self.position, z, z.copy(), z.copy()
+
+
+@dataclass(frozen=True)
+class BiasRamp:
+    """A constant-velocity reference (the servo loop's Profile protocol): from ``start`` the velocity
+    rises to ``velocity`` over ``ramp`` s (raised cosine: finite jerk), stays there until
+    ``duration - ramp`` and falls back to 0 at ``duration``; it holds its last position afterwards."""
+
+    start: float
+    velocity: float
+    duration: float
+    ramp: float = BIAS_RAMP_S
+    name: str = "constant-velocity bias + multisine"
+
+    @property
+    def start_position(self) -> float:
+        return self.start
+
+    @property
+    def travel(self) -> float:
+        """Distance covered, m (signed): the ramps are symmetric, each loses half its time."""
+        return self.velocity * (self.duration - self.ramp)
+
+    def at(self, t: float) -> Reference:
+        p, v, a, j = self.sample(np.array([float(t)]))
+        return Reference(float(p[0]), float(v[0]), float(a[0]), float(j[0]))
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        vb, ta, w = self.velocity, self.ramp, math.pi / self.ramp
+        td = self.duration - ta  # the deceleration starts here
+        up, down = t < ta, t > td
+        pos = self.start + vb * (t - 0.5 * ta)  # the cruise: each ramp lags a full-speed start by ta / 2
+        vel = np.full_like(t, vb)
+        acc = np.zeros_like(t)
+        jerk = np.zeros_like(t)
+        tu = t[up]
+        pos[up] = self.start + vb * (0.5 * tu - np.sin(w * tu) / (2 * w))
+        vel[up] = vb * 0.5 * (1 - np.cos(w * tu))
+        acc[up] = vb * 0.5 * w * np.sin(w * tu)
+        jerk[up] = vb * 0.5 * w * w * np.cos(w * tu)
+        s = t[down] - td  # mirror image of the ramp up
+        pos[down] = self.start + vb * (td - 0.5 * ta) + vb * (0.5 * s + np.sin(w * s) / (2 * w))
+        vel[down] = vb * 0.5 * (1 + np.cos(w * s))
+        acc[down] = -vb * 0.5 * w * np.sin(w * s)
+        jerk[down] = -vb * 0.5 * w * w * np.cos(w * s)
+        return pos, vel, acc, jerk
 
 
 # --------------------------------------------------------------------------------------------------
@@ -301,6 +374,8 @@ class BodeResult:
     stop: str = "completed"
     detail: str = ""
     coulomb: float = 0.0  # the plant's largest Coulomb level (effort unit): not in the linear model
+    bias_velocity: float = 0.0  # m/s, the constant-velocity bias the response was measured about (0: hold)
+    stood_share: float = 0.0  # under a bias: share of the analysed cycles the axis stood or moved backwards
     files: list[Path] = field(default_factory=list)
 
     @property
@@ -328,7 +403,9 @@ class BodeResult:
         out = io.StringIO()
         out.write(f"# drivectl bode: axis {self.axis}, plant {self.plant}, {self.bus}; effort -> position, "
                   f"magnitude in dB re 1 m/{self.effort_unit or 'effort'}; multisine peak "
-                  f"{self.amplitude:g} {self.effort_unit}; mode {_fmt(self.mode_hz)} Hz, model "
+                  f"{self.amplitude:g} {self.effort_unit}"
+                  + (f" about a constant-velocity bias of {self.bias_velocity:g} m/s" if self.bias_velocity else "")
+                  + f"; mode {_fmt(self.mode_hz)} Hz, model "
                   f"{_fmt(self.model_mode_hz)} Hz\n")
         out.write(",".join(CSV_COLUMNS) + "\n")
         data = np.column_stack([self.freqs, _db(self.frf), _deg(self.frf), self.coherence, _db(self.model),
@@ -376,6 +453,42 @@ def default_amplitude(spec: PlantSpec, max_effort: float, rated_effort: float) -
     return max(DEFAULT_AMPLITUDE_RATED * rated_effort, COULOMB_MULTIPLE * coulomb)
 
 
+def excitation_peak_velocity(spec: PlantSpec, one_period: np.ndarray, dt: float) -> float:
+    """Peak velocity (m/s) of the model's linear part driven open-loop by one period of the multisine,
+    in periodic steady state: the excitation's lines through the velocity response ``j w H``."""
+    n = len(one_period)
+    x = np.fft.rfft(one_period)
+    f = np.fft.rfftfreq(n, dt)
+    on = np.abs(x) > 1e-9 * np.max(np.abs(x))
+    v = np.zeros_like(x)
+    v[on] = x[on] * 1j * 2 * math.pi * f[on] * model_frf(spec, dt, f[on])
+    return float(np.max(np.abs(np.fft.irfft(v, n))))
+
+
+def bias_plan(cfg: MachineConfig, axis_name: str, spec: PlantSpec, periods: int,
+              bias_velocity: float | None) -> BiasRamp | None:
+    """The constant-velocity bias for the measurement, or None (hold still). ``bias_velocity`` None:
+    where the model has Coulomb friction, the fastest velocity up to :data:`BIAS_MAX_M_S` whose travel
+    stays within :data:`BIAS_LIMIT_SHARE` of the soft-limit range, else hold; 0: hold. The travel is
+    centred on the hold point; an explicit velocity whose travel leaves the soft limits is refused."""
+    if bias_velocity is not None and not (math.isfinite(bias_velocity) and bias_velocity >= 0):
+        raise BodeError(f"bode: --bias-velocity: must be >= 0 m/s, got {bias_velocity:g}")
+    if bias_velocity == 0 or (bias_velocity is None and coulomb_level(spec) <= 0):
+        return None
+    cruise = periods * PERIOD_S  # the ramps lose half their time each: travel = v * cruise
+    hold = hold_position(cfg, axis_name)
+    lim = cfg.axis(axis_name).limits.position
+    if bias_velocity is None:
+        room = math.inf if lim is None else BIAS_LIMIT_SHARE * 2 * min(hold - lim[0], lim[1] - hold)
+        bias_velocity = min(BIAS_MAX_M_S, room / cruise)
+    travel = bias_velocity * cruise
+    if lim is not None and not (lim[0] <= hold - 0.5 * travel and hold + 0.5 * travel <= lim[1]):
+        raise BodeError(f"bode: --bias-velocity {bias_velocity:g} m/s for --seconds {cruise:g} travels "
+                        f"{travel * 1e3:.1f} mm about {hold * 1e3:g} mm, more than axes.{axis_name}.limits.position_m "
+                        f"({lim[0]:g} .. {lim[1]:g} m) allows; lower one of them")
+    return BiasRamp(hold - 0.5 * travel, bias_velocity, cruise + BIAS_RAMP_S)
+
+
 def measure_frf(
     cfg: MachineConfig,
     axis_name: str,
@@ -390,6 +503,7 @@ def measure_frf(
     controller: Controller | None = None,
     noise: float = 0.0,
     seed: int = 0,
+    bias_velocity: float | None = None,
 ) -> BodeResult:
     """Hold ``axis_name`` under its configured controller, add a multisine of peak ``amplitude``
     (effort unit; default 5 % of max_effort) on [fmin, fmax] Hz to the effort for ``seconds``, and
@@ -397,7 +511,9 @@ def measure_frf(
     configured bus (the emulated drives on the virtual bus by default). A run stopped by a limit
     returns a result with ``ok`` False (and no FRF: arrays empty). ``model`` (``--model``) is the plant
     the controller believes and the overlay shows; ``plant`` (``--plant``) what the emulated drive
-    plays (see :func:`~drivectl.tools.machine.model_specs`); ``controller`` replaces the axis's."""
+    plays (see :func:`~drivectl.tools.machine.model_specs`); ``controller`` replaces the axis's.
+    ``bias_velocity`` (m/s): the constant-velocity bias (:func:`bias_plan`; None: automatic where the
+    model has Coulomb friction, 0: hold still)."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel, run_channels
     from drivectl.tools.machine import model_specs, open_machine, plant_specs
@@ -413,31 +529,41 @@ def measure_frf(
     max_eff = ac.limits.max_effort
     plants = plant_specs(cfg, [axis_name], plant)
     spec = model_specs(cfg, [axis_name], model, plant, plants=plants)[axis_name]
-    if amplitude is None:
+    n = int(round(PERIOD_S / dt))
+    periods = max(3, int(seconds / PERIOD_S))
+    bias = bias_plan(cfg, axis_name, spec, periods, bias_velocity)
+    if amplitude is None and bias is not None:
+        # sliding, the friction is no threshold to beat: the largest excitation whose own velocity
+        # (open loop, peak) stays within 1 / BIAS_MARGIN of the bias, so the axis never reverses
+        unit, _ = multisine(n, dt, fmin, fmax, 1.0)
+        amplitude = min(abs(bias.velocity) / (BIAS_MARGIN * excitation_peak_velocity(spec, unit, dt)),
+                        MAX_DEFAULT_FRACTION * max_eff)
+    elif amplitude is None:
         amplitude = default_amplitude(spec, max_eff, ac.rated_effort)
     # the excitation alone must leave the controller most of the effort range, else clipping (a
     # nonlinearity) corrupts the estimate
     if not (math.isfinite(amplitude) and 0 < amplitude <= 0.5 * max_eff):
         raise BodeError(f"bode: --amplitude: must be > 0 and at most half of axes.{axis_name}.limits.max_effort "
                         f"({0.5 * max_eff:g}), got {amplitude:g}")
-    n = int(round(PERIOD_S / dt))
-    periods = max(3, int(seconds / PERIOD_S))
     one, _ = multisine(n, dt, fmin, fmax, amplitude)
     exc = np.tile(one, periods)
 
     inner = controller or make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
                                           source=f"{cfg.source}: axes.{axis_name}.controller_settings")
     ctrl = ExcitedController(inner, exc)
-    hold = hold_position(cfg, axis_name)
-    profile = Hold(hold, periods * PERIOD_S)
-    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: hold}, noise=noise, seed=seed)
+    profile: Hold | BiasRamp = bias or Hold(hold_position(cfg, axis_name), periods * PERIOD_S)
+    # periods * n rows exactly (the row count is duration / dt + 1, so one dt short), then the bias's
+    # ramp down to rest after the last period (not analysed)
+    rows = periods * n + (int(round(BIAS_RAMP_S / dt)) if bias else 0)
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: profile.start_position},
+                           noise=noise, seed=seed)
     try:
-        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": "hold + multisine on the effort",
-                "bus": machine.bus,
+        what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
+        what += " + multisine on the effort"
+        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": what, "bus": machine.bus,
                 "config": cfg.source}
-        # periods * n rows exactly: the row count is duration / dt + 1, so one dt short
         res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
-                           duration=(periods * n - 1) * dt)
+                           duration=(rows - 1) * dt)
     finally:
         machine.close()
     tr = res.trace
@@ -446,12 +572,17 @@ def measure_frf(
     model_mode = in_band[0] if in_band else None
     base = BodeResult(axis_name, spec.name, machine.bus, np.array([]), np.array([], dtype=complex), np.array([]),
                       np.array([], dtype=complex), None, model_mode, amplitude, spec.effort_unit, tr,
-                      res.stop.value, res.detail, coulomb_level(spec))
+                      res.stop.value, res.detail, coulomb_level(spec), 0.0 if bias is None else bias.velocity)
     if not res.ok:
         return base
-    f, h, coh = estimate_frf(exc[: len(tr)], tr.effort, tr.pos, n, dt)
+    m = min(len(tr), periods * n)
+    # pos - ref: the bias's ramp is not in the response (on a hold, ref is a constant the detrend removes)
+    f, h, coh = estimate_frf(exc[:m], tr.effort[:m], (tr.pos - tr.ref)[:m], n, dt)
     keep = (f >= fmin - 1e-9) & (f <= fmax + 1e-9)
     base.freqs, base.frf, base.coherence = f[keep], h[keep], coh[keep]
+    if bias is not None:  # did it slide all along? velocity over 5 cycles (one count per cycle: 0.08 mm/s)
+        v = (tr.pos[n + 5 : m] - tr.pos[n : m - 5]) / (5 * dt)
+        base.stood_share = float(np.mean(v * math.copysign(1.0, bias.velocity) <= 0.0))
     base.model = model_frf(spec, dt, base.freqs)
     # delays removed for the phase test: transport cycle, half-cycle of the hold, extra input delay
     base.mode = find_mode(base.freqs, base.frf, base.coherence, 1.5 * dt + spec.design().input_delay)
@@ -529,7 +660,14 @@ def summary_text(res: BodeResult) -> str:
                      f"{res.mode.phase_drop_deg:.0f} deg); model {_fmt(res.model_mode_hz)} Hz{err}")
     else:
         lines.append(f"mode: none found in the band; model {_fmt(res.model_mode_hz)} Hz")
-    if res.coulomb > 0:
+    if res.coulomb > 0 and res.bias_velocity > 0:
+        lines.append(f"measured about a constant-velocity bias of {res.bias_velocity * 1e3:.2f} mm/s: the axis "
+                     f"slides, its Coulomb friction ({res.coulomb:g} {res.effort_unit}) is a constant force "
+                     "outside the response")
+        if res.stood_share > 0:
+            lines.append(f"warning: the axis stood or moved backwards in {100 * res.stood_share:.1f} % of the "
+                         "analysed cycles: where it stuck the response is not the plant's (lower --amplitude)")
+    elif res.coulomb > 0:
         lines.append(f"note: the model is the linear part; this plant's Coulomb friction ({res.coulomb:g} "
                      f"{res.effort_unit}) is not in it and lowers the measured response where the axis sticks")
     return "\n".join(lines) + "\n"
@@ -562,6 +700,10 @@ def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, default=20.0, help="excitation length in s (default 20)")
     p.add_argument("--amplitude", type=float, metavar="EFFORT",
                    help="peak of the multisine in the effort unit (default 5 %% of the axis's max_effort)")
+    p.add_argument("--bias-velocity", type=float, metavar="M_S",
+                   help="measure about this constant velocity (m/s) so a friction axis never sticks (default: "
+                   "automatic where the model has Coulomb friction, twice the excitation's peak velocity; 0 = "
+                   "hold still)")
     p.add_argument("--fmin", type=float, default=DEFAULT_FMIN, help=f"lowest line, Hz (default {DEFAULT_FMIN:g})")
     p.add_argument("--fmax", type=float, default=DEFAULT_FMAX, help=f"highest line, Hz (default {DEFAULT_FMAX:g})")
     return p
@@ -585,7 +727,8 @@ def cmd_bode(args: argparse.Namespace) -> int:
         except TraceError as exc:
             raise ConfigError(str(exc)) from None
         res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
-                          fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant)
+                          fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
+                          bias_velocity=args.bias_velocity)
     except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2

@@ -1,8 +1,9 @@
 """Machine configuration: the axes, their plants, controllers, profiles and limits.
 
-An embedded default serves when no file is given (three emulated axes: x = rigid-x and y = rigid-y
-under paper 004's ASMC with gain law 14 on the circle of eq (25), z = two-mass on paper 000's seed-000
-move under the model-based controller ``mbc``, which beats paper 000's PID-NFTSM there (selectable).
+An embedded default serves when no file is given (three emulated axes on the circle of paper 004's
+eq (25): x = rigid-x under the model-based controller ``mbc``, which beats paper 004's ASMC there
+(selectable), y = rigid-y under that ASMC with gain law 14; z = two-mass on paper 000's seed-000 move
+under ``mbc``, which beats paper 000's PID-NFTSM there (selectable).
 A file given with ``--config`` (or ``DRIVECTL_CONFIG``) has the same shape; every error names the file
 and the key.
 """
@@ -39,22 +40,22 @@ node_id = 1
 rated_effort = 100.0         # N per 1000 per mille of 0x6071 (0x6076); 0.1 % = 0.1 N
 plant = "rigid-x"               # built-in plant name or a plant TOML file (what the emulated drive plays)
 # model = "rigid-x"             # the plant the controller believes (name or TOML file); default: the plant
-controller = "asmc"             # mbc | asmc | pid-nftsm | smc | vprl | pid | pid-dob
+controller = "mbc"              # mbc | asmc | pid-nftsm | smc | vprl | pid | pid-dob; paper 004: "asmc", law 14
 profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
 max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
 rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): it stops by itself; 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
-law = 14                        # paper 004 gain law (11..14)
-# controller = "mbc" (no settings) tracks the circle within 0.09 um against ASMC's 0.19, holds where a
-# move ends (0.03 um; ASMC, without integral action, 4 um off the Coulomb friction), and with an unmodelled
-# Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over the circle
-# reads 1.34 against 1.05 N per cycle: both flip the effort by the friction (93 N) at the two reversals,
-# mbc ahead of the transport delay so its second flip is the run's last cycle, ASMC's one cycle after it
-# (over 10.5 s: 1.31 against 1.38). x keeps the paper's ASMC: its loop is soft enough that `bode` sees
-# the plant; under mbc's stiffer loop the axis sticks in its Coulomb friction and bode reports a false
-# 10.5 Hz mode.
+# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, 0.03 um off
+# where a move ends against 4 um (ASMC has no integral action against the Coulomb friction), with an
+# unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over
+# the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
+# (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle
+# (over 10.5 s: 1.31 against 1.38). `bode` measures it about a constant-velocity bias (the axis slides,
+# never sticks): no mode, within 0.3 dB of the model to 100 Hz. For paper 004's ASMC set
+# controller = "asmc" and uncomment:
+# law = 14                      # paper 004 gain law (11..14)
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits

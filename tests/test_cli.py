@@ -27,6 +27,7 @@ def test_trace_axis_x_writes_trace_plot_and_summary(tmp_path, capsys):
     assert (tmp_path / "x.png").stat().st_size > 10_000
     assert "max um" in out and "wrote" in out
     assert np.abs(tr.error).max() < 1e-6  # the model is the plant here: sub-micrometre
+    assert np.abs(tr.error).max() < 0.15e-6  # mbc: 0.09 um (paper 004's ASMC: 0.19, why x switched)
 
 
 def test_two_axis_trace_and_effect_flag(tmp_path, capsys):

@@ -170,3 +170,12 @@ def test_tune_with_another_controller_keeps_the_settings_it_also_takes(tmp_path)
     cfg = load_config(cfg_file)
     base, start, _ = starting_gains(cfg, "x", "pid-dob")
     assert base == {"kp": 2.5e6} and start["kp"] == 2.5e6  # carried over, as trace --controller does
+
+
+def test_out_folder_is_refused_before_the_search(tmp_path, capsys) -> None:
+    rc = _run_cli(["--axis", "x", "--candidates", "1000", "--out", str(tmp_path)])
+    cap = capsys.readouterr()
+    assert rc == 2 and cap.out == ""
+    assert cap.err.strip().splitlines() == [f"drivectl: tune: --out {tmp_path}: is a folder; give the TOML file to "
+                                            "write (default traces/tune-AXIS.toml)"]
+    assert not list(tmp_path.iterdir())

@@ -735,6 +735,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
         from drivectl.tools.machine import with_model
 
         cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
+        if args.out and Path(args.out).is_dir():  # before the search: the gains could not be written after it
+            raise ConfigError(f"tune: --out {args.out}: is a folder; give the TOML file to write "
+                              "(default traces/tune-AXIS.toml)")
         if getattr(args, "write_config", None) is not None:  # before the search and the verification run
             from drivectl.tools.config_io import target_file
 

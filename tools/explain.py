@@ -367,10 +367,16 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                     f.effect for f in trial if f not in named)
         if named:
             named, current, mse_cur, swaps = _simplify(prep, nominal, named, mse_cur, floor, alone)
+            if swaps:  # the gaps after each effect, of the simplified model built up in order
+                mses_in_order, _ = _mse_of(prep, [_build(nominal, named[:j + 1]) for j in range(len(named))])
+                gap_at = {f.key: math.sqrt(float(np.mean(mses_in_order[:, j]))) for j, f in enumerate(named)}
             for old_fit, new_fit in swaps:
-                gap_at[new_fit.key] = gap_at.pop(old_fit.key)
-                rounds[-1]["decision"] += (f"; then {old_fit.key} replaced by the simpler {new_fit.key} "
-                                           f"(as good within the floor)")
+                if new_fit is None:
+                    rounds[-1]["decision"] += (f"; then {old_fit.key} dropped: the others refitted without it "
+                                               f"explain as much within the floor")
+                else:
+                    rounds[-1]["decision"] += (f"; then {old_fit.key} replaced by the simpler {new_fit.key} "
+                                               f"(as good within the floor)")
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -466,30 +472,54 @@ def _floor_with_next(prep: Prepared, nominal: PlantSpec, trial: list[Fit], cands
 
 def _simplify(prep: Prepared, nominal: PlantSpec, named: list[Fit], mse: np.ndarray, floor: float,
               alone: list[tuple[Fit, dict[str, float]]]) -> tuple[list[Fit], PlantSpec, np.ndarray, list]:
-    """The simplest of near-equal explanations: each named effect is tried against candidates with fewer
-    parameters (from their fit on the nominal plant, refitted jointly with the other named effects); the
-    simpler one replaces it when the named one's extra parameters do not earn MARGIN floor^2 over it.
+    """The simplest of near-equal explanations, once the naming is done.
 
     Effects named in order trade along valleys: while the axis moves, a constant force (offset) and a
     Coulomb or viscous friction that differs by direction push alike, and the first, strongest round
-    can take the two-parameter one for a one-parameter cause (only standstill tells them apart).
+    can take the two-parameter one for a one-parameter cause (only standstill tells them apart). So each
+    named effect is tried (a) left out, the others refitted jointly without it, and (b) replaced by a
+    candidate with fewer parameters (from its fit on the nominal plant, refitted jointly with the
+    others); it goes when its extra parameters do not earn MARGIN floor^2 over the simpler model.
+    Returns (named, model, per-window MSE, [(removed, replacement or None), ...]).
     """
-    swaps = []
-    for i in range(len(named)):
-        f = named[i]
-        others = {g.effect for j, g in enumerate(named) if j != i}
-        tries = [k for k, st in alone if k.n_params < f.n_params and k.key != f.key and k.effect not in others
-                 and st["robust_gain"] > 0][:SIMPLER_TRIES]
+    swaps: list[tuple[Fit, Fit | None]] = []
+    by_key = {k.key: k for k, _ in alone}
+    done: set[str] = set()
+    while True:
+        # the effect with the most parameters first: the one most likely to stand in for a simpler cause
+        left = [f for f in named if f.key not in done]
+        if not left:
+            break
+        f = max(left, key=lambda g: g.n_params)
+        done.add(f.key)
+        i = named.index(f)
+        others = [g for j, g in enumerate(named) if j != i]
+        have = {g.effect for g in others}
+        tries: list[Fit | None] = [None] if others else []
+        tries += [k for k, st in alone if k.n_params < f.n_params and k.key != f.key and k.effect not in have
+                  and st["robust_gain"] > 0][:SIMPLER_TRIES]
         for k in tries:
-            trial = refine_jointly(prep, nominal, [*named[:i], k, *named[i + 1:]])
+            start = [*named[:i], *([k] if k is not None else []), *named[i + 1:]]
+            # the others start where they were, or from their own fit on the nominal plant when that is
+            # better: the one taken out may have carried part of them (a Coulomb asymmetry an offset)
+            alt = [by_key.get(g.key, g) if g is not k else g for g in start]
+            gaps = _gaps_grouped_of(prep, nominal, [start, alt])
+            trial = refine_jointly(prep, nominal, alt if gaps[1] < gaps[0] else start)
             mse_t, _ = _mse_of(prep, [_build(nominal, trial)])
-            saved = PARAM_CHARGE * (f.n_params - k.n_params) * floor ** 2
+            saved = PARAM_CHARGE * (f.n_params - (k.n_params if k is not None else 0)) * floor ** 2
             loss = _window_stats(mse_t[:, 0], mse)["robust_gain"] - saved
             if loss < MARGIN * floor ** 2:
-                swaps.append((f, trial[i]))
+                swaps.append((f, trial[i] if k is not None else None))
                 named, mse = trial, mse_t[:, 0]
                 break
     return named, _build(nominal, named), mse, swaps
+
+
+def _gaps_grouped_of(prep: Prepared, nominal: PlantSpec, models: list[list[Fit]]) -> np.ndarray:
+    """The gap of each model (a list of fits on the nominal plant)."""
+    specs = [_build(nominal, m) for m in models]
+    mses, _ = _mse_of(prep, specs)
+    return np.sqrt(np.mean(mses, axis=0))
 
 
 def _prune(prep: Prepared, nominal: PlantSpec, fits: list[Fit], mse: np.ndarray,

@@ -37,7 +37,7 @@ import numpy as np
 from drivectl.controllers.capture import CHANNELS, Capture, CaptureError, Trigger
 from drivectl.controllers.interrupt import stop_on_signals
 from drivectl.controllers.loop import AxisRuntime, AxisState, MotionFault, Move, ProfileRun, ServoLoop, drive_error
-from drivectl.controllers.servo import Channel, LimitError, check_run_length
+from drivectl.controllers.servo import Channel, LimitError, check_run_length, run_preview
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.profiles.base import Profile, profile_name
@@ -55,6 +55,7 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     if rt.handle is not None and rt.handle is not handle:
         old, rt.handle = rt.handle, None
         old._end("stopped", rt, f"replaced by {kind}")
+    rt.ch.controller.use_preview(None)  # a run's preview ends with the run (a run installs its own)
     return True
 
 
@@ -319,6 +320,9 @@ class AxisControl:
                              "runs it from here); nothing moved")
         refs = [a.tolist() for a in samples]
         run = ProfileRun(refs, n, rec=np.zeros((3, n)))
+        # the controller's reference preview, as a one-shot run has it; computed here, not in the loop's
+        # cycle (a model-based feed-forward table takes milliseconds), installed when the run starts
+        preview = run_preview(rt.ch.controller, profile, t, offset)
         name = profile_name(profile)
         handle = Move(loop, self.name, "run", float(samples[0][-1]))
         meta = {"profile": name, "relative_offset_m": format_value(offset)}
@@ -338,6 +342,7 @@ class AxisControl:
             if not _take_over(rt, handle, "run"):
                 return
             rt.jog_until = 0
+            rt.ch.controller.use_preview(preview)
             rt.run = run
             rt.handle = handle
             handle.status = "moving"

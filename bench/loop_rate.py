@@ -132,6 +132,8 @@ def main() -> None:
     print(f"{'socketcand (127.0.0.1) across processes':<44} {socketcand:>10.0f} {'':>10}")
     print(f"\npaced 1 kHz, {args.paced_seconds:g} s, one axis: missed {missed * 100:.3f} % of deadlines "
           f"(target < 0.5 %), worst lateness {worst:.3f} ms")
+    if meta.get("stop") != "completed":  # the drive's RPDO deadline runs on the wall clock too: a late master stops
+        print(f"  the paced run stopped after {meta.get('cycles')} cycles: {meta.get('stop_detail', meta.get('stop'))}")
     print(f"ratio lockstep 1 axis / ping-pong: {one / pp:.2f} (the loop adds SYNC, 2 TPDOs, controller, plant)")
 
 

@@ -220,12 +220,24 @@ class Controller(ABC):
     def step(self, reference: Reference, feedback: Feedback) -> float:
         """The effort for this cycle from the reference and the sampled feedback."""
 
-    def prepare(self, profile: Any, times: np.ndarray) -> None:  # noqa: B027 - optional hook, no-op by default
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
         """Reference preview: called once before a run, after :meth:`reset`, with the profile and the
         run's cycle times (step k follows ``times[k]``). A controller that plans ahead (a feed-forward
         through a model with a transport delay needs the reference a few cycles early) computes it here;
         the default needs nothing. Callers that cannot give a profile skip it: the controller then works
-        from each cycle's Reference alone."""
+        from each cycle's Reference alone. It is :meth:`use_preview` of :meth:`preview`: the resident loop
+        (session.py) computes the preview outside its cycle and installs it in the cycle the run starts,
+        the controller continuing from its hold (controllers/servo.py ``run_preview``)."""
+        self.use_preview(self.preview(profile, times))
+
+    def preview(self, profile: Any, times: np.ndarray) -> Any:
+        """What :meth:`prepare` installs, computed from the profile and the run's cycle times alone: it may
+        run in another thread while the controller steps (it must not change the controller's state).
+        Default: nothing to plan."""
+        return None
+
+    def use_preview(self, preview: Any) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Install a :meth:`preview`: the next ``step`` is the run's cycle 0. Default: nothing."""
 
     def note_applied(self, effort: Any) -> None:
         """Told, after ``step``, the effort actually applied this cycle when something outside the law added

@@ -43,6 +43,12 @@ class LearnedFeedforward(Controller):
     def prepare(self, profile: Any, times: np.ndarray) -> None:
         self.inner.prepare(profile, times)  # the inner controller's reference preview (controllers/base.py)
 
+    def preview(self, profile: Any, times: np.ndarray) -> Any:
+        return self.inner.preview(profile, times)
+
+    def use_preview(self, preview: Any) -> None:
+        self.inner.use_preview(preview)
+
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k
         self._k = k + 1

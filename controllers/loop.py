@@ -15,7 +15,9 @@ Two clocks, chosen when the loop is made:
   cycle. Missed deadlines and the worst lateness are counted all the time (``status()``). A cycle that
   starts later than ``stall_s`` after the previous one is a stall: a fault (quick stop); a watchdog
   thread sends the quick stop itself when the loop thread does not come back at all, and the drive's
-  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies.
+  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies. The
+  in-process emulated drives run on this loop's clock meanwhile (as across processes), so a loop later
+  than the RPDO deadline is caught by the drive as a real one would catch it.
 * ``"lockstep"``: no thread; time is the cycle count and advances only when the caller runs cycles
   (:meth:`ServoLoop.step`, :meth:`ServoLoop.run_until`, a handle's ``wait``). Deterministic: the same
   commands give the same trace bit for bit (tests, CI on the emulated drives).
@@ -62,6 +64,7 @@ from drivectl.controllers.servo import (
     Limits,
     Pacer,
     StopReason,
+    _pace_axes,
     _safe_stop,
     check_and_write,
     control,
@@ -614,10 +617,15 @@ class ServoLoop:
 
     # -- wall clock -------------------------------------------------------------------------------------
     def _thread_main(self) -> None:
+        paced = False
         try:
             self._setup_thread()
-            pacer = Pacer(self.dt)
             now = self._now
+            pacer = Pacer(self.dt, now=now)
+            # in-process, the emulated drives run on this clock too, as across processes: a loop later than
+            # the drive's RPDO deadline is caught by the drive (controllers/servo._pace_axes)
+            _pace_axes(self._channels, pacer.now)
+            paced = True
             k = 0
             while not self._closing:
                 pacer.wait(k)
@@ -640,6 +648,9 @@ class ServoLoop:
         except BaseException as exc:  # noqa: BLE001 - recorded; the watchdog and the drives stop the axes
             self.error = exc
             raise
+        finally:
+            if paced:
+                _pace_axes(self._channels, None)
 
     def _setup_thread(self) -> None:
         if self.gil_switch:

@@ -11,7 +11,10 @@ two bandwidths with physical meaning, and computes every gain (``scipy.linalg.so
   periodic, offset). It needs the reference ahead of time: :meth:`Mbc.prepare` takes the profile and the
   run's cycle times before the run (the servo loop calls it) and computes the whole table at once. Without
   it (a caller that only steps) the reference is extrapolated from its derivatives at constant jerk, which
-  is exact except within two cycles of a jerk switch.
+  is exact except within two cycles of a jerk switch. On a two-mass model the snap impulse of the exact
+  inverse at each jerk switch is spread over a short centred window computed from the model
+  (``snap = "spread"``, :meth:`LinearModel.snap_spread`: 3.2 ms on two-mass): it cut the effort's
+  roughness by a third (bench/precision.py, README).
 * **Kalman filter** on the model discretised exactly for the cycle, with the command in flight (the one
   sent last cycle, acting now) and two disturbance states: an effort-equivalent disturbance d and its
   rate. Where the model names a disturbance frequency (paper 000's d = 0.1 sin(pi t)) d is an oscillator at
@@ -64,6 +67,9 @@ class MbcSettings(Settings):
                               doc="auto: an oscillator at the model's disturbance frequency, else a ramp")
     friction_ff: bool = choice(True, (True, False), doc="compensate the model's friction in the feed-forward")
     feedforward: bool = choice(True, (True, False), doc="the model-inverse feed-forward (off: feedback only)")
+    snap: str = choice("spread", ("spread", "exact"),
+                       doc="two-mass: the inverse's snap impulse at each jerk switch spread over the window "
+                       "the model sets (controllers/linear_model.py), or held in one cycle (exact)")
 
 
 #: (bandwidth_hz, observer_hz) when the settings leave them 0, by the model's number of bodies: a coupling
@@ -240,6 +246,11 @@ class Mbc(Controller):
         self._fk = 0.0  # the friction compensation in it
         self._k = 0  # cycle index into the prepared table
 
+    @property
+    def spread(self) -> float:
+        """The window of the snap spread, s (0: exact inverse)."""
+        return self.model.snap_spread(self.dt) if self.settings.snap == "spread" else 0.0
+
     def feedforward(self, profile: Any, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The feed-forward for a run at ``times``: the linear part's effort and the known forces, row k for
         the command computed at times[k] (acting over the next cycle but one, after the transport delay)."""
@@ -252,27 +263,38 @@ class Mbc(Controller):
         if s.feedforward:
             # the reference moves between times[0] and the first instant a command can act (the delay):
             # what the model needed over that span goes into the first command, so nothing is lost
-            both = self.model.held_effort(profile, np.concatenate([times[:1], tt]))
+            both = self.model.held_effort(profile, np.concatenate([times[:1], tt]), self.spread)
             uff = both[1:]
             uff[0] += both[0] * (tt[0] - times[0]) / dt
         else:
             uff = np.zeros(n_t)
-        fk = self.model.held_known_forces(profile, tt) if s.friction_ff else np.zeros(n_t)
+        fk = self.model.held_known_forces(profile, tt, self.spread) if s.friction_ff else np.zeros(n_t)
         return uff, fk
 
-    def prepare(self, profile: Any, times: np.ndarray) -> None:
-        """Compute the feed-forward for the whole run ahead (the servo loop calls this once, after reset,
-        with the run's cycle times; step k then uses row k)."""
+    def preview(self, profile: Any, times: np.ndarray) -> tuple[list[float], ...] | None:
+        """The feed-forward for the whole run ahead, one row per cycle of ``times`` (controllers/base.py:
+        ``prepare`` installs it, step k then uses row k). Reads only the design: safe beside ``step``."""
         times = np.asarray(times, dtype=float)
         if len(times) < 2:
-            self._table = None
-            return
+            return None
         uff, fk = self.feedforward(profile, times)
-        xref = self.model.reference_states(profile, times[0] + self.dt * (np.arange(len(times)) + 1.0))
+        xref = self.model.reference_states(profile, times[0] + self.dt * (np.arange(len(times)) + 1.0),
+                                           self.spread)
+        # the rows before the first command of the run can act (the transport delay and any delay effect):
+        # the plant can only be where the run found it, coasting; a reference state that has moved on
+        # would make the feedback push against the feed-forward's own catching up (it did: a 0.5 V spike
+        # and its rebound in the first two cycles of seed-000)
+        x0 = self.model.reference_states(profile, times[:1], self.spread)[0]
+        for k in range(min(int(self.model.extra_delay / self.dt + 1e-9) + 1, len(xref))):
+            xref[k] = x0
+            xref[k, 0::2] += x0[1::2] * self.dt * (k + 1)
         r = profile.sample(times)[0]
         # the reference state enters the law only as K xref: folded into the feed-forward ahead of time
         ffk = uff + xref @ self.d.K
-        self._table = (r.tolist(), ffk.tolist(), fk.tolist())
+        return r.tolist(), ffk.tolist(), fk.tolist()
+
+    def use_preview(self, preview: tuple[list[float], ...] | None) -> None:
+        self._table = preview
         self._k = 0
 
     def _row(self, reference: Reference) -> tuple[float, float]:
@@ -286,9 +308,9 @@ class Mbc(Controller):
         delay = self.model.extra_delay / dt
         s = self.settings
         tt = dt * (np.array([1.0, 2.0]) + delay)
-        uff = float(self.model.held_effort(ext, tt)[0]) if s.feedforward else 0.0
-        fk = float(self.model.held_known_forces(ext, tt)[0]) if s.friction_ff else 0.0
-        xref = self.model.reference_states(ext, np.array([dt, 2 * dt]))[0]
+        uff = float(self.model.held_effort(ext, tt, self.spread)[0]) if s.feedforward else 0.0
+        fk = float(self.model.held_known_forces(ext, tt, self.spread)[0]) if s.friction_ff else 0.0
+        xref = self.model.reference_states(ext, np.array([dt, 2 * dt]), self.spread)[0]
         return uff + float(xref @ self.d.K), fk
 
     def loop_matrix(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:

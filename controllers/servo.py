@@ -30,7 +30,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.interrupt import StopRequest, stop_on_signals
-from drivectl.controllers.run_checks import JumpState, position_jump
+from drivectl.controllers.run_checks import JumpState, RunChecks, RunGuard, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
@@ -187,6 +187,27 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
+def run_preview(controller: Controller, profile: Profile, times: np.ndarray, offset: float = 0.0) -> object:
+    """The controller's reference preview for a run of ``profile`` at the run's cycle times ``times``
+    (controllers/base.py ``preview``), the profile's positions shifted by ``offset`` (a relative run of
+    the resident loop). A one-shot run prepares the controller with the same profile and times
+    (:func:`run_channels`); the resident loop computes this outside its cycle (``Controller.preview``
+    only reads) and installs it with ``use_preview`` in the cycle the run takes the axis."""
+    return controller.preview(_Offset(profile, offset) if offset else profile, np.asarray(times, dtype=float))
+
+
+class _Offset:
+    """``profile`` with its positions shifted by ``offset`` m (a relative run)."""
+
+    def __init__(self, profile: Profile, offset: float):
+        self._p, self._offset = profile, offset
+        self.duration = profile.duration
+
+    def sample(self, t: np.ndarray):
+        r, *rest = self._p.sample(t)
+        return (np.asarray(r) + self._offset, *rest)
+
+
 #: cycles of reference sampled at a time: a run holds one chunk of its references, whatever its length
 REF_CHUNK = 8192
 
@@ -254,9 +275,10 @@ def run_channels(
     progress: bool = False,
     disable_at_end: bool = True,
     on_start: Callable[[int], None] | None = None,
-    pace: bool = False,
+    pace: bool | Pacer = False,
     stop_request: StopRequest | None = None,
     stream: str | Path | None = None,
+    checks: RunChecks | None = None,
 ) -> RunResult:
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
@@ -269,12 +291,17 @@ def run_channels(
     ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
     interrupt ends in quick stop with the trace kept at any time). ``pace=True`` runs the cycles on the
     wall clock (one per ``dt``, as with a real drive) instead of lockstep; missed deadlines and the
-    worst lateness are measured and written into the trace metadata, never hidden.
+    worst lateness are measured and written into the trace metadata, never hidden; in-process the
+    emulated drives run on the same wall clock meanwhile (their RPDO deadline catches a master that runs
+    late, as across processes: :meth:`Pacer.now`, ``axis.pace``). ``pace`` may be a :class:`Pacer` (its
+    clock injected: tests).
     ``disable_at_end=False`` leaves the axes enabled (zero effort until the next run takes them).
     ``stream``: a folder the traces are written to as the run goes (tools/trace_stream.py: a
     ``.partial`` file flushed every 100 ms, renamed when the run ends, a new name per run and
     ``AXIS.csv`` the latest; ``RunResult.paths``); the files are opened before anything moves, so an
     output that cannot be written stops the run before it starts (TraceWriteError).
+    ``checks``: the ``[checks]`` fault thresholds stop the run the cycle they are passed (a fault of kind
+    "run check": controllers/run_checks.RunGuard); the warnings are judged after the run (``assess``).
 
     SIGINT and SIGTERM end the run at the next cycle boundary in quick stop, the trace kept: through
     ``stop_request`` when the caller routes the signals (:func:`stop_on_signals`, e.g. for a whole
@@ -290,15 +317,21 @@ def run_channels(
             if prepare is not None:
                 prepare(ch.profile, plan.t)
             ch.clipped = 0
-        pacer = Pacer(plan.dt) if pace else None
+        pacer = pace if isinstance(pace, Pacer) else Pacer(plan.dt) if pace else None
+        if pacer is not None:
+            _pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
+        guard = RunGuard(checks, plan.cycles, channels, pacer) if checks is not None else None
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
         with signals as request:
-            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress)
+            outcome = _run_cycles(plan, rec, request, pacer, on_start, progress, guard)
         if outcome.stop is StopReason.COMPLETED and disable_at_end:
             _disable_all(channels)
     except BaseException:
         rec.abandon()  # what was streamed stays, as a .partial file
         raise
+    finally:
+        if pace:
+            _pace_axes(channels, None)
     return rec.result(outcome, pacer)
 
 
@@ -314,7 +347,7 @@ class _Outcome:
 
 
 def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
-                on_start: Callable[[int], None] | None, progress: bool) -> _Outcome:
+                on_start: Callable[[int], None] | None, progress: bool, guard: RunGuard | None = None) -> _Outcome:
     """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
     channels, dt, n = plan.channels, plan.dt, plan.cycles
     if plan.base:
@@ -346,15 +379,18 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 rec.record(i, k, fb, u, r)
                 check_and_write(ch, k, dt, fb.position, r, u)
             out.cycles = k + 1
+            if guard is not None and (over := guard.check(k + 1)) is not None:
+                raise CycleFault(StopReason.FAULT, Fault(FaultKind.RUN_CHECK.value, over[0], k, over[1]), True)
             if k == 0 and on_start is not None:
                 on_start(n)
             if bar is not None and k % 250 == 0:
                 bar.update(min(250, n - bar.n))
     except CycleFault as exc:
-        out.stop, out.fault, out.detail = exc.stop, exc.fault, exc.fault.detail
+        out.stop, out.fault = exc.stop, exc.fault
         if exc.recorded:
             out.cycles = k + 1
         _safe_stop(channels, out.fault)
+        out.detail = out.fault.detail  # with the drive's own reason, read after the stop
     except (_Interrupted, KeyboardInterrupt):
         out.stop = StopReason.INTERRUPTED
         out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
@@ -543,11 +579,12 @@ class Pacer:
 
     SPIN_S = 300e-6
 
-    def __init__(self, dt: float):
+    def __init__(self, dt: float, now: Callable[[], float] | None = None,
+                 sleep: Callable[[float], None] | None = None):
         import time
 
-        self._now = time.perf_counter
-        self._sleep = time.sleep
+        self._now = now or time.perf_counter  # injectable: tests stall a master on a simulated clock
+        self._sleep = sleep or time.sleep
         self.dt = dt
         self.t0 = self._now()
         self.missed = 0
@@ -565,6 +602,20 @@ class Pacer:
             self.worst_late = late
         if late > 0.5 * self.dt:
             self.missed += 1
+
+
+    def now(self) -> float:
+        """The pacer's clock (the wall clock the in-process drives run on while the run is paced)."""
+        return self._now()
+
+
+def _pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None) -> None:
+    """Tell each axis that a paced run starts on ``wall`` (None: it ended); axes without drives of their
+    own clock in this process (SimAxis) have no ``pace``."""
+    for ch in channels:
+        pace = getattr(ch.axis, "pace", None)
+        if pace is not None:
+            pace(wall)
 
 
 class _Interrupted(Exception):
@@ -713,6 +764,8 @@ def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
             if code is None and getattr(faulted, "last_emcy", None):
                 code = faulted.last_emcy[0]
             fault.error_code = code
+            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+                fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 
 def _quietly(fn: Callable[..., object], *args: object) -> object:

@@ -4,7 +4,8 @@ Boot (NMT reset, boot-up awaited), identity 0x1018 checked against the configura
 SDO (mode 10 = CST, PDO mapping through canopen's PdoMap, SYNC period, heartbeat), then once per cycle:
 SYNC -> TPDOs in (statusword, position, velocity, torque) -> the controller -> RPDO out (controlword,
 target torque in per mille of the rated effort; with the minimal mapping the controlword goes in an
-event-driven RPDO2, only in the cycles where it changes). The CiA 402 state machine is stepped inside the
+event-driven RPDO2, sent when it changes, again each cycle while the drive has not reached the state
+it asks for, and every 100 cycles). The CiA 402 state machine is stepped inside the
 cycle from the tables of driver/cia402.py (never canopen's blocking BaseNode402 setters): enabling
 takes two cycles, a fault reset is a rising edge of bit 7 verified by the next statusword.
 
@@ -34,6 +35,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,10 +74,18 @@ RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
 COMPACT_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),)
 #: the minimal mapping (``bus.pdo_mapping = "minimal"``): TPDO1 statusword + position (velocity derived on the
 #: host, torque actual not mapped: read 0x6077 by SDO where a tool needs it); RPDO1 the target torque alone,
-#: synchronous; RPDO2 the controlword, event-driven (transmission type 255): sent only in the cycles where the
-#: controlword changes (CiA 301 practice), so it costs the bus nothing in steady state
+#: synchronous; RPDO2 the controlword, event-driven (transmission type 255): sent in the cycles where the
+#: controlword changes (CiA 301 practice), resent while a transition is pending and every CW_REFRESH_CYCLES, so
+#: it costs the bus almost nothing in steady state
 MINIMAL_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),)
 MINIMAL_RPDO_ENTRIES = (((cia402.TARGET_TORQUE, 0),), ((cia402.CONTROLWORD, 0),))
+#: the minimal mapping's RPDO2 is sent again each cycle, up to this many cycles after a change, while the drive
+#: has not reported the state it asks for (the cycles a run waits for a transition: controllers/servo.py
+#: STATE_CHANGE_CYCLES), so one lost frame costs a transition one cycle, not the transition
+CW_RESEND_CYCLES = 20
+#: ... and every this many cycles in any case (0.1 s at 1 kHz; 63 bits per 100 cycles: 0.06 % of 1 Mbit/s per
+#: axis), so a lost frame that changed no power state (the halt bit) heals too
+CW_REFRESH_CYCLES = 100
 #: the PDO mappings the master knows (tools/bus_budget.py counts their bits)
 MAPPINGS = ("full", "compact", "minimal")
 TPDO_ENTRIES = (
@@ -201,6 +211,8 @@ class CanopenAxis:
         self._cw_rpdo = PdoLayout.from_entries(od, self._rpdo_entries[1]) if mapping == "minimal" else None
         self._cw_cob = RPDO_BASE[1] + node_id
         self._cw_sent: int | None = None
+        self._cw_age = 0  # cycles since the last RPDO2
+        self._cw_resends = 0  # resends left while the drive has not reached the state the controlword asks for
         self._tpdo_entries = {"compact": COMPACT_TPDO_ENTRIES, "minimal": MINIMAL_TPDO_ENTRIES}.get(mapping,
                                                                                                   TPDO_ENTRIES)
         self._tpdo = [PdoLayout.from_entries(od, e) for e in self._tpdo_entries]
@@ -660,12 +672,25 @@ class CanopenAxis:
                                                                                    self.scale.to_permille(effort)))
                 return
             cw = self._controlword
-            if cw != self._cw_sent:  # minimal: the controlword only when it changes, in the same cycle
-                self.network.send_message(self._cw_cob, self._cw_rpdo.codec.pack(cw))
-                self._cw_sent = cw
+            self._cw_age += 1
+            # minimal: the controlword when it changes (in the same cycle); then again each cycle while the drive
+            # has not reached the state it asks for (a lost frame must not stall a transition: CW_RESEND_CYCLES,
+            # the cycles a master waits for one), and every CW_REFRESH_CYCLES whatever (a lost halt or reset edge)
+            if cw != self._cw_sent:
+                self._cw_resends = CW_RESEND_CYCLES
+                self._send_cw(cw)
+            elif self._cw_age >= CW_REFRESH_CYCLES:
+                self._send_cw(cw)
+            elif self._cw_resends and self.power is not self.master.target:
+                self._cw_resends -= 1
+                self._send_cw(cw)
             self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self.scale.to_permille(effort)))
         except can.CanError as exc:
             raise AxisError(f"axis {self.name}: RPDO not sent: {exc}", FaultKind.BUS_ERROR) from None
+
+    def _send_cw(self, cw: int) -> None:
+        self.network.send_message(self._cw_cob, self._cw_rpdo.codec.pack(cw))
+        self._cw_sent, self._cw_age = cw, 0
 
     # -- power state targets (reached through the following cycles) ----------------------------------
     def enable(self) -> None:
@@ -687,6 +712,13 @@ class CanopenAxis:
     def _target(self, target: PowerState) -> None:
         self.master.target = target
         self._controlword = self.master.controlword(self.power)
+
+    def pace(self, wall: Callable[[], float] | None) -> None:
+        """A run paced on the wall clock ``wall`` starts (None: it ended). In-process (lockstep) the emulated
+        drives on this bus then run on that clock, as they do across processes (driver/network.Lockstep.pace);
+        across processes a drive has its own clock and nothing changes."""
+        if self.lockstep:
+            self.network.lockstep.pace(wall)
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

@@ -145,6 +145,23 @@ class Lockstep:
         self._settling = False
         #: the devices' own clocks (emulated drives): advance(seconds) lets simulated time pass
         self.clocks: list[Callable[[float], None]] = []
+        #: the devices' wall clocks (an emulated drive's ``wall_clock(now)``), served while a run is paced
+        self.wall_clocks: list[Callable[[float | None], None]] = []
+        self._wall: Callable[[], float] | None = None
+
+    def pace(self, wall: Callable[[], float] | None) -> None:
+        """A run paced on the wall clock ``wall`` starts (None: it ended). While it lasts the devices run on
+        that clock as they do across processes: each gets the wall time before every delivery (the time
+        that passed while the master was silent, a late master's included, runs on the device) and after
+        it (SYNC-locked at the frame's arrival); see plant_emulator/node402.EmulatedDrive.wall_clock."""
+        if wall is self._wall:
+            return  # several axes of one bus: once
+        self._wall = wall
+        if wall is None:
+            for clock in list(self.wall_clocks):
+                clock(None)
+        else:
+            self._serve_wall(wall)
 
     def advance(self, seconds: float) -> None:
         """Let ``seconds`` of simulated time pass on every device clock (a master waiting for a boot-up:
@@ -159,14 +176,27 @@ class Lockstep:
             return  # a callback sent a frame: the outer settle delivers it
         self._settling = True
         try:
-            busy = True
-            while busy:
-                busy = False
-                for net in self.networks:
-                    if net.pump():
-                        busy = True
+            wall = self._wall
+            if wall is not None:  # paced: the devices' clocks up to this frame, then to its arrival
+                self._serve_wall(wall)
+                self._deliver()
+                self._serve_wall(wall)
+            self._deliver()
         finally:
             self._settling = False
+
+    def _deliver(self) -> None:
+        busy = True
+        while busy:
+            busy = False
+            for net in self.networks:
+                if net.pump():
+                    busy = True
+
+    def _serve_wall(self, wall: Callable[[], float]) -> None:
+        now = wall()
+        for clock in self.wall_clocks:
+            clock(now)
 
 
 class LockstepNetwork(canopen.Network):

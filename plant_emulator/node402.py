@@ -30,15 +30,18 @@ The drive's clock (issue 19): drive time advances one cycle per SYNC, so a locks
 deterministic and a merely slow master is never taken for a dead one (its heartbeat, sent every n
 SYNCs, and the drive's consumer count the same time). When nothing brings SYNCs, the drive runs on
 its own: in-process through :meth:`EmulatedDrive.advance` (the lockstep network lets time pass while
-the master waits, :meth:`idle` runs one cycle), across processes through :meth:`EmulatedDrive.serve`
-with the wall clock: SYNC-locked while SYNCs come, free-running (the whole gap counted, so the RPDO
-deadline fires 2 cycles of drive time after the last RPDO) once no SYNC came for ``sync_loss_ms``.
-Its default is the master-heartbeat consumer time (0x1016, 300 ms as drivectl configures it; 300 ms
-without a consumer): a lockstep master on a loaded machine leaves gaps of some ms and, now and then,
-over 100 ms (measured on the 2-core CI VM), which must not count as a dead master, while a master
-silent for longer than its own heartbeat period allows is dead by CiA 301's own rule. A master paced
-in real time wants about two cycles. Heartbeat, event-driven TPDOs, the RPDO deadline and the 0x1016
-consumer all run on that one clock, so a silent master is always caught.
+the master waits, :meth:`idle` runs one cycle); across processes, and in-process while a run is paced
+on the wall clock (``trace --paced``: :meth:`EmulatedDrive.wall_clock`, called by the lockstep network
+around every frame it delivers), through :meth:`EmulatedDrive.serve` with the wall clock: SYNC-locked
+while SYNCs come, free-running (the whole gap counted, so the RPDO deadline fires 2 cycles of drive
+time after the last RPDO) once no SYNC came for ``sync_loss_ms``. Its default is the master-heartbeat
+consumer time (0x1016, 300 ms as drivectl configures it; 300 ms without a consumer): a lockstep
+master on a loaded machine leaves gaps of some ms and, now and then, over 100 ms (measured on the
+2-core CI VM), which must not count as a dead master, while a master silent for longer than its own
+heartbeat period allows is dead by CiA 301's own rule. A master paced in real time wants about two
+cycles (:data:`PACED_SYNC_LOSS_CYCLES`, what a paced in-process run uses: a master later than its RPDO
+deadline allows is caught by the drive, as across processes). Heartbeat, event-driven TPDOs, the RPDO
+deadline and the 0x1016 consumer all run on that one clock, so a silent master is always caught.
 """
 
 from __future__ import annotations
@@ -84,6 +87,9 @@ ERROR_RESET = 0x0000
 #: no master heartbeat is consumed (else the consumer's time, 0x1016)
 BOOT_DELAY_MS = 50.0
 SYNC_LOSS_MS = 300.0
+#: the SYNC-loss window of an in-process drive while the master's run is paced on the wall clock (cycles):
+#: a master paced in real time leaves about one cycle between SYNCs, so a longer gap is the master running late
+PACED_SYNC_LOSS_CYCLES = 2
 
 EMULATED_DRIVE_EDS = Path(__file__).resolve().parent.parent / "driver" / "eds" / "drivectl-emulated-drive.eds"
 
@@ -191,6 +197,7 @@ class EmulatedDrive:
         self._synced = False  # a SYNC came since the last serve()
         self._anchor = 0.0  # wall time (s) matching the drive's clock when served
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
+        self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self._heartbeat_cycles = 0
         self._consumer: tuple[int, int] | None = None  # master node id, timeout ms (0x1016 sub 1)
         self._ms_since_master: float | None = None  # None until the first heartbeat of the master
@@ -212,6 +219,7 @@ class EmulatedDrive:
         lockstep = getattr(network, "lockstep", None)
         if lockstep is not None and hasattr(lockstep, "clocks"):
             lockstep.clocks.append(self.advance)  # the drive's clock runs while the master waits
+            lockstep.wall_clocks.append(self.wall_clock)  # ... and on the wall clock while a run is paced
 
     # -- object dictionary helpers -----------------------------------------------------------------
     def _od_default(self, index: int, sub: int = 0) -> int:
@@ -702,7 +710,7 @@ class EmulatedDrive:
             return
         gap_ms = (now - self._anchor) * 1000.0
         if not self._free_running:
-            window = self.sync_loss_ms
+            window = self.sync_loss_ms if self._window_ms is None else self._window_ms
             if window is None:
                 window = self._consumer[1] if self._consumer is not None else SYNC_LOSS_MS
             if gap_ms <= window:
@@ -712,6 +720,22 @@ class EmulatedDrive:
         for _ in range(n):
             self._cycle(sync=False)
         self._anchor += n * self.cycle_ms / 1000.0
+
+    def wall_clock(self, now: float | None) -> None:
+        """In-process, while the master's run is paced on the wall clock (driver/network.Lockstep.pace): the
+        wall time ``now``, given before and after every frame the lockstep network delivers, served as
+        across processes (:meth:`serve`: the drive's clock is the wall clock, SYNC-locked within
+        :data:`PACED_SYNC_LOSS_CYCLES`; a longer gap runs its cycles, so the RPDO deadline and the heartbeat
+        consumer count the time the master was late). ``now=None``: the paced run ended; time is the SYNCs'
+        again (lockstep). The first call of a paced run anchors the clock: the lockstep SYNCs came until then."""
+        if now is None:
+            self._served, self._window_ms = False, None
+            return
+        if not self._served:
+            self._served, self._anchor, self._synced, self._free_running = True, now, False, False
+            self._window_ms = PACED_SYNC_LOSS_CYCLES * self.cycle_ms
+            return
+        self.serve(now)
 
     def check_master(self, now: float | None = None) -> int:
         """:meth:`serve`, then the code (0x603F) of the watchdog that stopped the running drive since the
@@ -739,3 +763,5 @@ class EmulatedDrive:
         lockstep = getattr(self.network, "lockstep", None)
         if lockstep is not None and self.advance in getattr(lockstep, "clocks", ()):
             lockstep.clocks.remove(self.advance)
+        if lockstep is not None and self.wall_clock in getattr(lockstep, "wall_clocks", ()):
+            lockstep.wall_clocks.remove(self.wall_clock)

@@ -142,3 +142,34 @@ def test_killed_or_hung_master_the_drive_stops_on_its_own(tmp_path, how):
     # heartbeat consumer (300 ms), whichever runs out first, stops it
     assert re.search(r"master lost \(.*\): drive stopped \(Switch On Disabled, 0x603F = 0x(8250|8130)\)",
                      reaction), reaction + err
+
+
+def test_scan_and_status_across_processes_read_the_nmt_state_from_the_drive(tmp_path, capsys):
+    """Issue 18 leftover: across processes scan never sees the boot-up and the drive sends no heartbeat
+    (0x1017 = 0 by default), so it said "unknown". It now asks the drive for one heartbeat (0x1017 set for a
+    moment, then written back) and reports what the drive said; its 0x1017 is as it was found."""
+    import json
+
+    from drivectl.tools.cli import main
+
+    emu = Emulator(tmp_path, "--socketcand")
+    try:
+        port = int(re.search(r"127\.0\.0\.1:(\d+)", emu.line).group(1))
+        cfg = tmp_path / "master.toml"
+        cfg.write_text(AXIS_X.format(bus=f'interface = "socketcand"\nchannel = "can0"\nhost = "127.0.0.1"\n'
+                                         f'port = {port}', profile="short-move"))
+        assert main(["--config", str(cfg), "scan", "--json"]) == 0
+        nodes = json.loads(capsys.readouterr().out)["nodes"]
+        assert [(n["node"], n["nmt"]) for n in nodes] == [(1, "PRE-OPERATIONAL")]
+        assert main(["--config", str(cfg), "status", "--axis", "x", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["x"]["nmt"] == "PRE-OPERATIONAL"
+        from drivectl.driver.network import close_threaded, open_bus, threaded_network
+
+        net = threaded_network(open_bus("socketcand", "can0", host="127.0.0.1", port=port))
+        try:
+            node = net.add_node(1)
+            assert node.sdo.upload(0x1017, 0) == b"\x00\x00"  # written back: no heartbeat left on
+        finally:
+            close_threaded(net)
+    finally:
+        emu.stop()

@@ -172,3 +172,141 @@ def test_in_process_the_heartbeat_consumer_runs_on_the_drive_clock():
         safe = m.let_drives_run(1000, until_safe=True)["x"]
         assert drive.drive.error_code == cia402.HEARTBEAT_LOST_ERROR
         assert 295 <= safe <= 305  # 300 ms after the master's last heartbeat (sent at its first SYNC)
+
+
+class _WallClock:
+    """A simulated wall clock for a paced run: time passes only by the pacer's waits (and a little per
+    reading, so its spin ends) and by the stalls the test injects. Nothing sleeps."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def now(self) -> float:
+        self.t += 1e-6
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += s
+
+
+class _LateMaster:
+    """The controller of the run, stalling the master ``stall_s`` of wall time in its ``at``-th step (between
+    the cycle's SYNC and its RPDO: the master runs late)."""
+
+    def __init__(self, inner, clock: _WallClock, at: int, stall_s: float) -> None:
+        self.inner, self.clock, self.at, self.stall_s, self.steps = inner, clock, at, stall_s, 0
+        self.dt = inner.dt
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def describe(self):
+        return self.inner.describe()
+
+    def step(self, ref, fb):
+        self.steps += 1
+        if self.steps == self.at:
+            self.clock.t += self.stall_s
+        return self.inner.step(ref, fb)
+
+
+def _paced_run(stall_s: float, *, paced: bool = True, rpdo_timeout_ms: int | None = None):
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel, Pacer, run_channels
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    if rpdo_timeout_ms is not None:
+        object.__setattr__(ac, "rpdo_timeout_ms", rpdo_timeout_ms)
+    from drivectl.profiles.library import load_profile
+
+    prof = load_profile(ac.profile)
+    clock = _WallClock()
+    m = open_machine(cfg, ["x"], start={"x": prof.start_position})
+    ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=m.specs["x"], axis="x")
+    late = _LateMaster(ctrl, clock, at=200, stall_s=stall_s)
+    pacer = Pacer(cfg.cycle_s, now=clock.now, sleep=clock.sleep) if paced else False
+    try:
+        res = run_channels([Channel(m.axes["x"], late, prof, ac.limits)], duration=0.4, pace=pacer)
+        return res, m.drives["x"], m
+    finally:
+        m.close()
+
+
+def test_paced_in_process_a_late_master_is_caught_by_the_drive_deadline():
+    """--paced in-process: the drive's RPDO deadline (0x1400:05, 2 ms) runs on the wall clock, as across
+    processes. A master 5 ms late is caught by the drive (0x8250, reaction per 0x6007); the master sees the
+    drive leave Operation Enabled in its next sample and stops, the end state reported by the drive."""
+    from drivectl.controllers.servo import StopReason
+
+    res, drive, _ = _paced_run(0.005)
+    assert res.stop is StopReason.FAULT
+    f = res.fault
+    assert f.kind in ("drive left Operation Enabled", "drive fault") and f.cycle == 200, f
+    assert drive.drive.error_code == 0x8250  # the drive's own reaction: RPDO deadline
+    assert f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault") and f.safe_after["x"] is not None
+    assert res.trace.meta["fault_kind"] == f.kind and res.trace.meta["paced"] == "wall clock"
+    assert res.detail.endswith("(its 0x603F: 0x8250: RPDO timeout (the master's setpoint came too late))")
+    assert res.trace.meta["stop_detail"] == res.detail
+
+
+def test_paced_in_process_a_master_within_the_deadline_is_not_caught():
+    """The same stall within the RPDO deadline (20 ms configured), and a master on time: the run completes;
+    so does the 5 ms stall in lockstep (simulated time: no wall clock)."""
+    for stall, timeout, paced in ((0.005, 20, True), (0.0, None, True), (0.005, None, False)):
+        res, drive, _ = _paced_run(stall, paced=paced, rpdo_timeout_ms=timeout)
+        assert res.ok, (stall, timeout, paced, res.detail)
+        assert drive.drive.error_code == 0
+
+
+def test_after_a_paced_run_the_drive_is_back_on_lockstep_time():
+    """Once the paced run ended the drive's clock is the SYNCs' again: a lockstep pause of any length between
+    frames is not a late master."""
+    from drivectl.driver.network import Lockstep
+
+    res, drive, m = _paced_run(0.0)
+    assert res.ok
+    lockstep = drive.network.lockstep
+    assert isinstance(lockstep, Lockstep) and lockstep._wall is None and not drive._served
+
+
+def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_path):
+    """The session's loop on the wall clock (controllers/loop.py) paces the in-process drives as
+    ``trace --paced`` does: a loop 200 ms late (a jump injected through its clock, so the outcome does not
+    depend on how busy the machine is; below its own stall bound) is caught by the drive's RPDO deadline
+    (50 ms here, so that real scheduling hiccups of a loaded test machine do not count)."""
+    import time
+
+    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.servo import Channel
+    from drivectl.tools.config import load_config
+    from drivectl.tools.machine import open_machine
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    object.__setattr__(ac, "rpdo_timeout_ms", 50)
+    m = open_machine(cfg, ["x"])
+    axis, drive = m.axes["x"], m.drives["x"]
+    ch = Channel(axis, make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None, ac.limits)
+    jump = {"s": 0.0}
+    loop = ServoLoop([ch], clock="wall", stall_s=5.0, fault_dir=tmp_path,
+                     now=lambda: time.perf_counter() + jump["s"])
+    loop.start()
+    try:
+        rt = loop.axes["x"]
+        rt.state = AxisState.ENABLING
+        loop.submit(axis.enable)
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
+        assert drive.drive.error_code == 0
+        jump["s"] = 0.2
+        assert loop.run_until(lambda: loop.faults, 10.0)
+        assert drive.drive.error_code == 0x8250  # the drive's own reaction: RPDO deadline, on the loop's clock
+        assert "0x8250" in loop.faults[0].detail and loop.status()["stalls"] == 0
+    finally:
+        loop.close()
+        m.close()
+    assert axis.power is not cia402.PowerState.OPERATION_ENABLED
+    assert drive.network.lockstep._wall is None  # the loop ended: the drive is back on SYNC time

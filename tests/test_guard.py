@@ -269,8 +269,13 @@ def test_cli_checks_from_the_configuration(tmp_path, capsys):
     rc = main(["--config", str(path), "trace", "--axis", "x", "--duration", "0.4", "--fault",
                "tpdo-lost:cycles=3@0.1", "--out", str(tmp_path), "--no-plot", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 3 and err[-1].startswith("drivectl: fault: run check: axis x: 3 of 401 cycles")
-    assert Trace.read(tmp_path / "x.csv").meta["stop"] == "fault"
+    # the fault threshold stops the run when it is passed (the third lost cycle: 0.6 % of the run's 401
+    # cycles allows 2), not after the profile (controllers/run_checks.RunGuard)
+    assert rc == 3 and err[-1].startswith("drivectl: fault: run check at cycle 101: axis x: 3 cycles run on an "
+                                          "extrapolated position"), err
+    assert "checks.extrapolated_fault 0.6% allows (2 of 401 cycles); stopped (x Switch On Disabled" in err[-1]
+    tr = Trace.read(tmp_path / "x.csv")
+    assert tr.meta["stop"] == "fault" and tr.meta["fault_kind"] == "run check" and len(tr) == 102
 
 
 @pytest.mark.parametrize(("old", "new", "message"), [

@@ -29,9 +29,11 @@ minimal (TPDO 6, RPDO 2 + ev.)  158 (190)   205  20.5 %  363  36.3 %  521  52.1 
 (:func:`resolve_mapping`): at 1 kHz on 1 Mbit/s full for 1-2 axes, compact for 3, minimal for 4; five
 do not fit (83.7 %): a 2 ms cycle or a second bus. The minimal mapping carries per cycle only what the
 loop needs (statusword and position in, target torque out): its controlword travels in an event-driven
-RPDO2 (transmission type 255, 2 data bytes, 63 bits) that the master sends only in the cycles where the
-controlword changes (enable, quick stop, the fault-reset edge, disable), so it is counted as zero in
-steady state; torque actual (0x6077) is not mapped (read by SDO where a tool needs it; the trace's
+RPDO2 (transmission type 255, 2 data bytes, 63 bits) that the master sends in the cycles where the
+controlword changes (enable, quick stop, the fault-reset edge, disable), again while the drive has not
+reached the state it asks for and every 100 cycles (driver/canopen_axis.py CW_RESEND_CYCLES,
+CW_REFRESH_CYCLES: 0.63 bits per cycle and axis), so it is counted as zero in steady state; torque
+actual (0x6077) is not mapped (read by SDO where a tool needs it; the trace's
 torque column is then empty, NaN). CiA 301 practice: an event-driven RPDO for what changes rarely.
 """
 
@@ -50,7 +52,8 @@ MAPPINGS: dict[str, tuple[tuple[str, int], ...]] = {
 }
 #: frames sent only on an event, not counted in the steady-state load: (what, data bytes), by mapping
 EVENT_FRAMES: dict[str, tuple[tuple[str, int], ...]] = {
-    "minimal": (("RPDO2 controlword, event-driven (type 255): only in the cycles where it changes", 2),),
+    "minimal": (("RPDO2 controlword, event-driven (type 255): when it changes, while a transition is pending, "
+                 "every 100 cycles", 2),),
 }
 #: what a mapping leaves out, said in the budget's lines
 NOT_MAPPED: dict[str, str] = {

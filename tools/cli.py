@@ -327,7 +327,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             # the traces stream to --out as the run goes (a killed run leaves its .partial files)
             result = run_channels(plan, on_start=started, pace=args.paced,
                                   progress=not args.quiet and sys.stderr.isatty(), stop_request=request,
-                                  stream=Path(args.out))
+                                  stream=Path(args.out), checks=cfg.checks)
         if machine.master_bus is not None and machine.master_bus.mode == "off":
             machine.let_drives_run(1000, until_safe=True)  # bus-off: physical time goes on, the drives stop
     finally:

@@ -23,6 +23,53 @@ from drivectl.tools.config import DEFAULT_CONFIG_TOML, ConfigError, load_config
 
 NMT_NAMES = {int(s): s.name.replace("_", "-") for s in NmtState}
 
+#: the heartbeat period (ms) scan and status ask, for a moment, of a node that sends none (0x1017 = 0, the CiA
+#: 301 default) and whose boot-up they did not see: its first heartbeat says the NMT state
+PROBE_HEARTBEAT_MS = 50
+
+
+def nmt_states(session: Any, nodes: dict[int, Any]) -> dict[int, str]:
+    """The NMT state of each node (id -> its SDO client), as its own messages say: the boot-up or heartbeat
+    seen since the session opened, else a heartbeat asked for: 0x1017 set to PROBE_HEARTBEAT_MS, the first
+    heartbeat awaited (three periods), the old value written back (the node's configuration as found). A
+    node that refuses, or sends nothing, is "unknown" with the reason (never a guess)."""
+    seen = session.nmt_seen
+    out: dict[int, str] = {}
+    asked: dict[int, int] = {}  # node -> its 0x1017 before the probe
+    for node_id, sdo in nodes.items():
+        if node_id in seen:
+            continue
+        try:
+            old = int.from_bytes(sdo.upload(cia402.PRODUCER_HEARTBEAT_TIME, 0), "little")
+            if old:  # it sends heartbeats: one is due within its period
+                asked[node_id] = -old
+                continue
+            sdo.download(cia402.PRODUCER_HEARTBEAT_TIME, 0, PROBE_HEARTBEAT_MS.to_bytes(2, "little"))
+            asked[node_id] = 0
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+            out[node_id] = f"unknown (no heartbeat; 0x1017 not settable: {exc})"
+    if asked:
+        wait_s = 3 * max([PROBE_HEARTBEAT_MS] + [-v for v in asked.values() if v < 0]) / 1000.0
+        if session.lockstep:
+            session.network.lockstep.advance(wait_s)  # the emulated drives' own clocks run that long
+        else:
+            until = time.monotonic() + wait_s
+            while time.monotonic() < until and not all(n in seen for n in asked):
+                time.sleep(0.01)
+    for node_id, old in asked.items():
+        if old == 0:
+            try:
+                nodes[node_id].download(cia402.PRODUCER_HEARTBEAT_TIME, 0, (0).to_bytes(2, "little"))
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+                out[node_id] = f"heartbeat of {PROBE_HEARTBEAT_MS} ms left on: 0x1017 not restored to 0 ({exc})"
+        if node_id not in seen and node_id not in out:
+            out[node_id] = f"unknown (no heartbeat within {wait_s * 1000:.0f} ms{' of 0x1017 set' if old == 0 else ''})"
+    for node_id in nodes:
+        if node_id in seen:
+            state = NMT_NAMES.get(seen[node_id], f"0x{seen[node_id]:02X}")
+            out[node_id] = state if node_id not in out else f"{state}; {out[node_id]}"
+    return out
+
 
 def add_commission_parsers(sub: Any) -> None:
     c = sub.add_parser("config", help="show the resolved machine configuration, or write a starter file")
@@ -103,7 +150,6 @@ def cmd_scan(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     with open_bus_session(cfg) as session:
         net = session.network
-        states = session.nmt_seen
         net.scanner.reset()
         net.scanner.search()
         _settle(session, 0.3)
@@ -125,8 +171,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
                 axis = next((n for n, a in cfg.axes.items() if a.node_id == node_id), None)
                 row["device_name"] = (canopen.import_od(cfg.axes[axis].eds).device_information.product_name
                                       if axis else "?") + " (from the EDS)"
-            row["nmt"] = NMT_NAMES.get(states.get(node_id, -1), "unknown (no heartbeat seen)")
             rows.append(row)
+        found = nmt_states(session, {r["node"]: net[r["node"]].sdo for r in rows})
+        for row in rows:
+            row["nmt"] = found[row["node"]]
         if args.json:
             print(json.dumps({"bus": session.bus, "nodes": rows}))
             return 0
@@ -176,7 +224,7 @@ def cmd_status(args: argparse.Namespace) -> int:
             unit = load_plant(ac.plant).effort_unit
             out[name] = {
                 "node": ac.node_id,
-                "nmt": NMT_NAMES.get(session.nmt_seen.get(ac.node_id, -1), "unknown (no heartbeat seen)"),
+                "nmt": nmt_states(session, {ac.node_id: node.sdo})[ac.node_id],
                 "power_state": cia402.decode_statusword(sw).value,
                 "statusword": f"0x{sw:04X}",
                 "mode": mode_text,

@@ -47,9 +47,14 @@ rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): 
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 law = 14                        # paper 004 gain law (11..14)
-# controller = "mbc" (no settings) tracks the circle within 0.10 um against ASMC's 0.19, but with a 28 %
-# rougher effort (1.34 against 1.05 N per cycle): by tune's cost J ASMC is ahead, so x keeps the paper's.
-# With an unmodelled Stribeck effect and noise mbc holds 11 um against 38 (bench/precision.py, README).
+# controller = "mbc" (no settings) tracks the circle within 0.09 um against ASMC's 0.19, holds where a
+# move ends (0.03 um; ASMC, without integral action, 4 um off the Coulomb friction), and with an unmodelled
+# Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over the circle
+# reads 1.34 against 1.05 N per cycle: both flip the effort by the friction (93 N) at the two reversals,
+# mbc ahead of the transport delay so its second flip is the run's last cycle, ASMC's one cycle after it
+# (over 10.5 s: 1.31 against 1.38). x keeps the paper's ASMC: its loop is soft enough that `bode` sees
+# the plant; under mbc's stiffer loop the axis sticks in its Coulomb friction and bode reports a false
+# 10.5 Hz mode.
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits
@@ -97,13 +102,15 @@ following_time_s = 0.01
 
 [checks]
 # fractions of a run's cycles: past *_warn a completed run says "completed with warnings" (exit 4),
-# past *_fault it is a fault (exit 3)
+# past *_fault it is a fault (exit 3) that stops the run when it is passed: mid-run the fraction is of
+# the cycles so far, but of at least fault_min_cycles (or the whole run if shorter)
 missed_deadlines_warn = 0.005   # --paced: cycles that started more than half a cycle late
 missed_deadlines_fault = 0.05
 clipped_warn = 0.01             # cycles with the effort clipped at limits.max_effort
 clipped_fault = 0.5
 extrapolated_warn = 0.005       # cycles run on an extrapolated position (TPDO lost or malformed)
 extrapolated_fault = 0.05
+fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines in the first second, stop a run
 """
 
 
@@ -386,7 +393,8 @@ def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:
 
 
 def _checks(raw: Any, src: str) -> RunChecks:
-    """[checks]: fractions of a run's cycles past which a completed run warns (exit 4) or faults (exit 3)."""
+    """[checks]: fractions of a run's cycles past which a completed run warns (exit 4) or a run faults (exit 3,
+    mid-run: controllers/run_checks.RunGuard), and the fewest cycles a fault fraction is judged on mid-run."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: checks: expected a table")
     known = {f.name for f in fields(RunChecks)}

@@ -72,6 +72,11 @@ def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float
                    applied_rows[starts].copy(), side)
 
 
+#: whole cycles in closed form (BatchSim._cycle_one) from this many substeps per cycle on: measured on a
+#: 10 s trace, with 2 substeps the per-cycle bookkeeping costs about what it saves, with 10 it is 2-8x faster
+CYCLE_MIN_SUBSTEPS = 4
+
+
 class BatchSim:
     """C candidate plants (same body count) stepped over W windows at once."""
 
@@ -133,6 +138,9 @@ class BatchSim:
         self.damp = np.array([x.coupling.damping if x.coupling else 0.0 for x in d])
         self.c_pos = np.array([[b.c_pos for b in x.bodies] for x in d])
         self.c_neg = np.array([[b.c_neg for b in x.bodies] for x in d])
+        self.cycle_ok = False
+        if not self.two:
+            self._one_body_tables()
 
     # ---------------------------------------------------------------------------------------------
     def _initial(self, win: Windows) -> list[np.ndarray]:
@@ -204,120 +212,330 @@ class BatchSim:
             fc = fc + exc[None, :] * np.exp(-r * r)
         return fc
 
+    # ---------------------------------------------------------------------------------------------
+    # One body: whole cycles in closed form where nothing switches, substeps only where something does
+    # ---------------------------------------------------------------------------------------------
+
+    def _one_body_tables(self) -> None:
+        """Per-candidate coefficients of the one-body step, (C,) arrays, and (where a whole cycle can be
+        taken at once) the cycle's propagation: P_i = A^i and Q_i = (I + A + ... + A^(i-1)) B for
+        i = 1..n substeps, per direction of motion (the plant's own A, B composed, no new physics)."""
+        A, B = self.A, self.B
+        t: dict[str, np.ndarray] = {}
+        for tag, k in (("p", 0), ("n", 2)):
+            t["a00" + tag], t["a01" + tag] = A[:, k, 0, 0], A[:, k, 0, 1]
+            t["a10" + tag], t["a11" + tag] = A[:, k, 1, 0], A[:, k, 1, 1]
+            t["b0" + tag], t["b1" + tag] = B[:, k, 0, 0], B[:, k, 1, 0]
+        t["fcp"], t["fcn"] = self.fc_pos[:, 0], self.fc_neg[:, 0]
+        t["exc"], t["stv"] = self.st_exc[:, 0], self.st_vel[:, 0]
+        t["off"], t["lim"] = self.offset, self.limit
+        t["pa"], t["pk"], t["pp"] = self.per_amp, self.per_k, self.per_phase
+        t["da"], t["dw"] = self.dist_a, self.dist_w
+        t["dc"], t["df"] = self.delay_cycles, self.delay_frac
+        self._t1 = t
+        self._rigid = bool(np.all(A[:, [0, 2], 0, 0] == 1.0) and np.all(A[:, [0, 2], 1, 0] == 0.0))
+        self._symmetric = bool(np.array_equal(A[:, 0], A[:, 2]) and np.array_equal(B[:, 0], B[:, 2]))
+        self._stribeck = bool(np.any(self.st_exc[:, 0] != 0))
+        # whole cycles need an input that is constant over the cycle and friction that is a constant force
+        # ... and enough substeps to be worth it: with 2 the per-cycle bookkeeping costs what it saves
+        self.cycle_ok = self.substeps >= CYCLE_MIN_SUBSTEPS and not (
+            self._stribeck or self.has_periodic or self.has_dist or self.delayed)
+        if not self.cycle_ok:
+            return
+        n = self.substeps
+        C = len(self.plants)
+        self._spring = not self._rigid
+        for tag, k in (("p", 0), ("n", 2)):
+            P = np.empty((C, n + 1, 2, 2))
+            Q = np.empty((C, n + 1, 2))
+            P[:, 0] = np.eye(2)
+            Q[:, 0] = 0.0
+            for i in range(1, n + 1):
+                P[:, i] = A[:, k] @ P[:, i - 1]
+                Q[:, i] = np.einsum("cij,cj->ci", A[:, k], Q[:, i - 1]) + B[:, k, :, 0]
+            t["P" + tag], t["Q" + tag] = P, Q
+            if self._spring:
+                # sticking with a spring: x -> alpha x per substep (the holding force cancels the rest)
+                alpha = t["a00" + tag] - t["b0" + tag] * t["a10" + tag] / t["b1" + tag]
+                t["al" + tag] = alpha
+                t["aln" + tag] = alpha ** n
+                t["aln1" + tag] = alpha ** (n - 1)
+
     def _run_one(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
         W, C, L = len(win.start), len(self.plants), win.length
         x, v = self._initial(win)
         out = np.empty((W, C, L))
         out_v = np.empty((W, C, L))
-        h = self.h
-        A, B = self.A, self.B
-        # the two sets of coefficients (moving +, moving -) as (C,) rows
-        a00p, a01p, a10p, a11p = (A[:, 0, r, s_][None, :] for r, s_ in ((0, 0), (0, 1), (1, 0), (1, 1)))
-        a00n, a01n, a10n, a11n = (A[:, 2, r, s_][None, :] for r, s_ in ((0, 0), (0, 1), (1, 0), (1, 1)))
-        b0p, b1p = B[:, 0, 0, 0][None, :], B[:, 0, 1, 0][None, :]
-        b0n, b1n = B[:, 2, 0, 0][None, :], B[:, 2, 1, 0][None, :]
-        coul = bool(self.coulomb[0])
-        t0 = win.t0[:, None]
+        if not self.cycle_ok:
+            # substeps for every window and candidate (flat arrays; the coefficients gathered once)
+            cidx = np.tile(np.arange(C), W)
+            widx = np.repeat(np.arange(W), C)
+            co = self._gather(cidx)
+            xf, vf = x.reshape(-1), v.reshape(-1)
+            for j in range(L):
+                xf, vf = self._substeps_one(win, j, xf, vf, widx, co)
+                out[:, :, j] = xf.reshape(W, C)
+                out_v[:, :, j] = vf.reshape(W, C)
+            return out, out_v
         for j in range(L):
-            f_in = self._inputs(win, j, 0)
-            for i in range(self.substeps):
-                f = self._inputs(win, j, i) if self.delayed else f_in
-                if self.has_offset or self.has_periodic:
-                    f = f + self.offset[None, :]
-                    if self.has_periodic:
-                        xm = x + 0.5 * h * v
-                        f = f + self.per_amp[None, :] * np.sin(self.per_k[None, :] * xm + self.per_phase[None, :])
-                if self.has_dist:
-                    f = f + self.dist_a[None, :] * np.sin(self.dist_w[None, :] * (t0 + j * self.dt + (i + 0.5) * h))
-                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
-                a00 = np.where(d, a00p, a00n)
-                a01 = np.where(d, a01p, a01n)
-                a10 = np.where(d, a10p, a10n)
-                a11 = np.where(d, a11p, a11n)
-                b0 = np.where(d, b0p, b0n)
-                b1 = np.where(d, b1p, b1n)
-                xf = a00 * x + a01 * v + b0 * f
-                vf = a10 * x + a11 * v + b1 * f
-                if coul:
-                    positive = vf > 0.0
-                    lim = self._coulomb_limit(0, v, positive)
-                    direction = np.where(positive, 1.0, -1.0)
-                    stick = np.abs(vf) <= b1 * lim
-                    lam = np.where(stick, -vf / b1, -direction * lim)
-                    lam = np.where(vf == 0.0, 0.0, lam)
-                    xf = xf + b0 * lam
-                    vf = vf + b1 * lam
-                    vf = np.where(np.abs(vf) < 1e-15, 0.0, vf)
-                x, v = xf, vf
+            x, v = self._cycle_one(win, j, x, v)
             out[:, :, j] = x
             out_v[:, :, j] = v
         return out, out_v
 
+    def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
+        """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
+        keys = ["lim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p", "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
+        keys += ["fcp", "fcn"] if self.coulomb[0] else []
+        keys += ["exc", "stv"] if self._stribeck else []
+        keys += ["off"] if self.has_offset or self.has_periodic else []
+        keys += ["pa", "pk", "pp"] if self.has_periodic else []
+        keys += ["da", "dw"] if self.has_dist else []
+        keys += ["dc", "df"] if self.delayed else []
+        return {k: self._t1[k][cidx] for k in keys}
+
+    #: velocity (m/s) a whole cycle must keep away from 0 to be taken in closed form (a stop or a reversal
+    #: inside the cycle is left to the substeps; far above the 1e-15 below which a substep zeroes it)
+    CYCLE_V_MARGIN = 1e-12
+
+    def _cycle_one(self, win: Windows, j: int, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Step j for every (window, candidate): in closed form where the body keeps moving one way (the
+        Coulomb force is then a constant force against it) or stays stuck all cycle; by substeps elsewhere.
+
+        Equal to the substeps to rounding: a moving body's substep is the affine map s -> A s + B (f - D fc)
+        as long as its velocity keeps the sign D (checked on every substep's velocity, or on the two ends
+        where the velocity is monotone: no spring); a stuck body stays stuck while the applied force stays
+        within the friction level."""
+        t = self._t1
+        n = self.substeps
+        H = win.history
+        f = np.clip(win.applied[:, H + j][:, None], -t["lim"][None, :], t["lim"][None, :])
+        if self.has_offset:
+            f = f + t["off"][None, :]
+        pos = v > 0.0
+        coul = bool(self.coulomb[0])
+        Pp, Pn, Qp, Qn = t["Pp"], t["Pn"], t["Qp"], t["Qn"]
+        if coul:
+            u = np.where(pos, f - t["fcp"][None, :], f + t["fcn"][None, :])
+        else:
+            u = f
+
+        def sel(ap: np.ndarray, an: np.ndarray) -> np.ndarray:
+            return ap if self._symmetric else np.where(pos, ap, an)
+
+        p00 = sel(Pp[None, :, n, 0, 0], Pn[None, :, n, 0, 0])
+        p01 = sel(Pp[None, :, n, 0, 1], Pn[None, :, n, 0, 1])
+        p11 = sel(Pp[None, :, n, 1, 1], Pn[None, :, n, 1, 1])
+        q0 = sel(Qp[None, :, n, 0], Qn[None, :, n, 0])
+        q1 = sel(Qp[None, :, n, 1], Qn[None, :, n, 1])
+        if self._spring:
+            p10 = sel(Pp[None, :, n, 1, 0], Pn[None, :, n, 1, 0])
+            xn = p00 * x + p01 * v + q0 * u
+            vn = p10 * x + p11 * v + q1 * u
+        else:
+            xn = x + p01 * v + q0 * u
+            vn = p11 * v + q1 * u
+        sgn = np.where(pos, 1.0, -1.0)
+        eps = self.CYCLE_V_MARGIN
+        moving = (sgn * v > eps) & (sgn * vn > eps)
+        if self._spring and n > 1:
+            # the velocity of a spring-mass need not be monotone over the cycle: every substep's
+            pos3 = pos[..., None]
+            vi = (np.where(pos3, Pp[None, :, 1:n, 1, 0], Pn[None, :, 1:n, 1, 0]) * x[..., None]
+                  + np.where(pos3, Pp[None, :, 1:n, 1, 1], Pn[None, :, 1:n, 1, 1]) * v[..., None]
+                  + np.where(pos3, Qp[None, :, 1:n, 1], Qn[None, :, 1:n, 1]) * u[..., None])
+            moving &= np.all(sgn[..., None] * vi > eps, axis=-1)
+        x_new = np.where(moving, xn, x)
+        v_new = np.where(moving, vn, 0.0)
+        rest = v == 0.0
+        if coul:
+            fpos = f >= 0.0
+            level = np.where(fpos, t["fcp"][None, :], t["fcn"][None, :])
+            if self._spring:
+                # stuck all cycle: the free velocity a10 x + b1 f within b1 fc at the first and the last
+                # substep's start (x -> alpha x moves it monotonically between them)
+                a10 = np.where(fpos, t["a10p"][None, :], t["a10n"][None, :])
+                b1 = np.where(fpos, t["b1p"][None, :], t["b1n"][None, :])
+                al1 = np.where(fpos, t["aln1p"][None, :], t["aln1n"][None, :])
+                aln = np.where(fpos, t["alnp"][None, :], t["alnn"][None, :])
+                fcp, fcn = b1 * t["fcp"][None, :], b1 * t["fcn"][None, :]
+                vf0 = a10 * x + b1 * f
+                vf1 = a10 * (al1 * x) + b1 * f
+                held = ((vf0 <= fcp) & (vf0 >= -fcn) & (vf1 <= fcp) & (vf1 >= -fcn))
+                stuck = rest & held
+                x_new = np.where(stuck, aln * x, x_new)
+            else:
+                stuck = rest & (np.abs(f) <= level)
+        else:
+            stuck = np.zeros_like(rest)
+        odd = np.flatnonzero(~(moving | stuck))
+        if len(odd):
+            C = len(self.plants)
+            w, c = np.divmod(odd, C)
+            xs, vs = self._substeps_one(win, j, x.reshape(-1)[odd], v.reshape(-1)[odd], w, self._gather(c))
+            x_new.reshape(-1)[odd] = xs
+            v_new.reshape(-1)[odd] = vs
+        return x_new, v_new
+
+    def _substeps_one(self, win: Windows, j: int, x: np.ndarray, v: np.ndarray, w: np.ndarray,
+                      co: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Step j by the plant's substeps for flat elements (windows ``w``, coefficients ``co`` gathered for
+        their candidates): Plant._step_one operation for operation."""
+        H = win.history
+        h = self.h
+        lim = co["lim"]
+        if self.delayed:
+            dc = co["dc"]
+            cur = win.applied[w, H + j - dc]
+            prev = win.applied[w, H + j - dc - 1]
+        else:
+            f_in = np.clip(win.applied[w, H + j], -lim, lim)
+        coul = bool(self.coulomb[0])
+        forces = self.has_offset or self.has_periodic
+        rigid = self._rigid
+        for i in range(self.substeps):
+            if self.delayed:
+                w_prev = np.clip((co["df"] * self.dt - i * h) / h, 0.0, 1.0)
+                f = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim, lim)
+            else:
+                f = f_in
+            if forces:
+                f = f + co["off"]
+                if self.has_periodic:
+                    xm = x + 0.5 * h * v
+                    f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
+            if self.has_dist:
+                f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
+            if self._symmetric:  # the same coefficients either way: no direction to look at
+                a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
+            else:
+                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
+                a00, a01 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a01p"], co["a01n"])
+                a10, a11 = np.where(d, co["a10p"], co["a10n"]), np.where(d, co["a11p"], co["a11n"])
+                b0, b1 = np.where(d, co["b0p"], co["b0n"]), np.where(d, co["b1p"], co["b1n"])
+            if rigid:  # a00 = 1 and a10 = 0 exactly: the same numbers without four operations
+                xf = x + a01 * v + b0 * f
+                vf = a11 * v + b1 * f
+            else:
+                xf = a00 * x + a01 * v + b0 * f
+                vf = a10 * x + a11 * v + b1 * f
+            if coul:
+                positive = vf > 0.0
+                lim_c = np.where(positive, co["fcp"], co["fcn"])
+                if self._stribeck:
+                    r = v / co["stv"]
+                    lim_c = lim_c + co["exc"] * np.exp(-r * r)
+                # Moreau: the impulse opposes vf, limited to fc h; a body it can stop sticks (vf = 0
+                # sticks too: -0/b1 adds nothing)
+                lam = np.where(np.abs(vf) <= b1 * lim_c, -vf / b1, np.copysign(lim_c, -vf))
+                xf = xf + b0 * lam
+                vf = vf + b1 * lam
+                vf = np.where(np.abs(vf) < 1e-15, 0.0, vf)
+            x, v = xf, vf
+        return x, v
+
     def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None,
                  with_velocity: bool = False) -> Any:
+        """Two bodies, Plant._step_two operation for operation on flat (window x candidate) rows.
+
+        The substep matrices of every element are gathered in one take from a coefficient-major table
+        (24 rows: A row by row, then B), once per run where no state of motion changes them."""
         W, C, L = len(win.start), len(self.plants), win.length
+        N = W * C
         init = self._initial(win)
         if internal is not None:
             init[0] = init[2] + internal[0]
             init[1] = init[3] + internal[1]
-        s = np.stack(init, axis=-1)  # (W, C, 4)
+        x0, v0, x1, v1 = (np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init)
         out = np.empty((W, C, L))
         out_v = np.empty((W, C, L)) if with_velocity else None
-        h = self.h
-        cidx = np.broadcast_to(np.arange(C)[None, :], (W, C))
-        gap = self.gap[None, :]
-        half = 0.5 * gap
-        kh = self.stiff[None, :] * half
+        h, dt, H = self.h, self.dt, win.history
+        cid = np.tile(np.arange(C), W)
+        wid = np.repeat(np.arange(W), C)
+        A, B = self.A, self.B
+        table = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()  # (24, C * 8)
+        base = cid * 8
         has_gap = bool(np.any(self.gap > 0))
-        t0 = win.t0[:, None]
+
+        def same(a: int, b: int) -> bool:
+            return bool(np.array_equal(A[:, a], A[:, b]) and np.array_equal(B[:, a], B[:, b]))
+
+        # which states of motion select other matrices (index: engaged 4, body 0 moving - 2, table moving - 1)
+        fixed = not has_gap and same(4, 6) and same(5, 7) and same(4, 5)
+        G = np.take(table, base + 4, axis=1) if fixed else None
+        gap, kh = self.gap[cid], self.stiff[cid] * (0.5 * self.gap[cid])
+        half = 0.5 * gap
+        lim_in = self.limit[cid]
+        forces = self.has_offset or self.has_periodic
+        zeros = np.zeros(N)
+        off = self.offset[cid] if forces else zeros
+        if self.has_periodic:
+            pa, pk, pp = self.per_amp[cid], self.per_k[cid], self.per_phase[cid]
+        if self.has_dist:
+            da, dw, t0 = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
+        if self.delayed:
+            dc, df = self.delay_cycles[cid], self.delay_frac[cid]
+        fcp, fcn = self.fc_pos[cid].T, self.fc_neg[cid].T  # (2, N)
+        exc, stv = self.st_exc[cid].T, self.st_vel[cid].T
+        stribeck = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
         for j in range(L):
-            f_in = self._inputs(win, j, 0)
+            if self.delayed:
+                cur = win.applied[wid, H + j - dc]
+                prev = win.applied[wid, H + j - dc - 1]
+            else:
+                f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
             for i in range(self.substeps):
-                x0, v0, x1, v1 = s[..., 0], s[..., 1], s[..., 2], s[..., 3]
-                f0 = self._inputs(win, j, i) if self.delayed else f_in
-                f1 = np.zeros((W, C))
-                if self.has_offset or self.has_periodic:
-                    f1 = f1 + self.offset[None, :]
-                    if self.has_periodic:
-                        xm = x1 + 0.5 * h * v1
-                        f1 = f1 + self.per_amp[None, :] * np.sin(self.per_k[None, :] * xm + self.per_phase[None, :])
+                if self.delayed:
+                    w_prev = np.clip((df * dt - i * h) / h, 0.0, 1.0)
+                    f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
+                else:
+                    f0 = f_in
+                f1 = off
+                if self.has_periodic:
+                    xm = x1 + 0.5 * h * v1
+                    f1 = f1 + pa * np.sin(pk * xm + pp)
                 if self.has_dist:
-                    dist = self.dist_a[None, :] * np.sin(self.dist_w[None, :] * (t0 + j * self.dt + (i + 0.5) * h))
+                    dist = da * np.sin(dw * (t0 + j * dt + (i + 0.5) * h))
                     f0 = f0 + dist
                     f1 = f1 + dist
-                engaged = np.ones((W, C), dtype=bool)
-                if has_gap:
-                    rel = x0 - x1
-                    over = (rel > half) & (gap > 0)
-                    under = (rel < -half) & (gap > 0)
-                    push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
-                    f0 = f0 + push
-                    f1 = f1 - push
-                    engaged = over | under | (gap <= 0)
-                d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
-                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
-                k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
-                As = self.A[cidx, k]  # (W, C, 4, 4)
-                Bs = self.B[cidx, k]  # (W, C, 4, 2)
-                new = np.einsum("wcij,wcj->wci", As, s) + Bs[..., 0] * f0[..., None] + Bs[..., 1] * f1[..., None]
+                if G is None:
+                    engaged = True
+                    if has_gap:
+                        rel = x0 - x1
+                        over = (rel > half) & (gap > 0)
+                        under = (rel < -half) & (gap > 0)
+                        push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
+                        f0 = f0 + push
+                        f1 = f1 - push
+                        engaged = over | under | (gap <= 0)
+                    d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
+                    d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
+                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                    Gs = np.take(table, base + k, axis=1)
+                else:
+                    Gs = G
+                s = (x0, v0, x1, v1)
+                new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
+                       + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
                 for body in (1, 0):
                     if not self.coulomb[body]:
                         continue
                     vi = 2 * body + 1
-                    vf = new[..., vi]
-                    g = Bs[..., vi, body]
+                    vf = new[vi]
+                    g = Gs[16 + 2 * vi + body]
                     positive = vf > 0.0
-                    lim = self._coulomb_limit(body, s[..., vi], positive)
-                    direction = np.where(positive, 1.0, -1.0)
-                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, -direction * lim)
-                    lam = np.where(vf == 0.0, 0.0, lam)
-                    new = new + Bs[..., body] * lam[..., None]
-                    vnew = new[..., vi]
-                    new[..., vi] = np.where(np.abs(vnew) < 1e-15, 0.0, vnew)
-                s = new
-            out[:, :, j] = s[..., 2]
+                    lim = np.where(positive, fcp[body], fcn[body])
+                    if stribeck[body]:
+                        r_ = s[vi] / stv[body]
+                        lim = lim + exc[body] * np.exp(-r_ * r_)
+                    # Moreau, as in _substeps_one; the impulse through the body's column of B
+                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
+                    new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
+                    new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
+                x0, v0, x1, v1 = new
+            out[:, :, j] = x1.reshape(W, C)
             if out_v is not None:
-                out_v[:, :, j] = s[..., 3]
+                out_v[:, :, j] = v1.reshape(W, C)
         return (out, out_v) if with_velocity else out
 
 

@@ -143,3 +143,15 @@ def test_two_bodies_equal_plant_step(data, spec):
             plant.step(st, float(win.applied[w, win.history + j]))
             xs.append(plant.position(st))
         assert np.max(np.abs(np.array(xs) - sim[w, 0])) < 1e-12
+
+
+@pytest.mark.parametrize("load,workers", [(0.0, 2), (1.0, 2), (1.4, 2), (1.6, 1), (3.5, 1)])
+def test_workers_follow_the_free_cores(monkeypatch, load, workers):
+    """Two cores: a pool while at most one other job runs (load <= 1.5), else one process."""
+    from drivectl.tools import explain
+
+    monkeypatch.delenv("DRIVECTL_EXPLAIN_WORKERS", raising=False)
+    monkeypatch.setattr(explain.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    monkeypatch.setattr(explain.os, "getloadavg", lambda: (load, load, load))
+    monkeypatch.setattr(explain.threading, "active_count", lambda: 1)
+    assert explain.choose_workers() == workers

@@ -135,7 +135,9 @@ def _one_blas_thread() -> Any:
 def choose_workers() -> int:
     """Processes for the independent fits: the cores that are free (DRIVECTL_EXPLAIN_WORKERS overrides).
 
-    Free = cores minus the 1-minute load, rounded; one process when other threads run in this
+    One core for this process and each core that is at least half free (cores minus the 1-minute load):
+    under one other CPU-bound job on two cores (load ~1) two processes share the cores with it, which
+    measured faster than one (bench/explain_speed.py); one process when other threads run in this
     process (a fork would copy their locks) or when nothing is free.
     """
     env = os.environ.get("DRIVECTL_EXPLAIN_WORKERS", "").strip()
@@ -151,7 +153,7 @@ def choose_workers() -> int:
         load = os.getloadavg()[0]
     except OSError:
         load = float(cores)
-    return int(max(1, min(cores, round(cores - load + 0.5))))
+    return int(max(1, min(cores, math.floor(cores - load + 1.5))))
 
 
 def _worker_init() -> None:
@@ -167,7 +169,20 @@ def _worker_init() -> None:
 COST_ORDER = ("resonance", "backlash", "stribeck", "coulomb", "viscous+-", "saturation", "periodic", "delay")
 
 
-def _run_fits(keys: list[str], prep: Prepared, pool: Any, bar: Any) -> tuple[list[Fit], dict[str, str]]:
+def _warm_imports(plot: bool) -> None:
+    """What the main process will import later anyway (the two-body start state's filter, the plot), imported
+    while the workers fit: the main process would only wait for them."""
+    import scipy.signal  # noqa: F401
+
+    if plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot  # noqa: F401
+
+
+def _run_fits(keys: list[str], prep: Prepared, pool: Any, bar: Any,
+              warm: Any = None) -> tuple[list[Fit], dict[str, str]]:
     keys = sorted(keys, key=lambda k: COST_ORDER.index(k) if k in COST_ORDER else len(COST_ORDER))
     fits: list[Fit] = []
     failed: dict[str, str] = {}
@@ -188,6 +203,8 @@ def _run_fits(keys: list[str], prep: Prepared, pool: Any, bar: Any) -> tuple[lis
                 done(key, None, exc)
     else:
         futures = {key: pool.submit(run_fitter, key, prep) for key in keys}
+        if warm is not None:
+            warm()
         for key, fut in futures.items():
             try:
                 done(key, fut.result(), None)
@@ -284,7 +301,8 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                     bar.refresh()
             if not round_keys:
                 break
-            fits, failed = _run_fits(round_keys, prep.on(current), pool, bar)
+            warm = (lambda: _warm_imports(out_dir is not None)) if r == 0 else None
+            fits, failed = _run_fits(round_keys, prep.on(current), pool, bar, warm)
             failed_all.update(failed)
             if not fits:
                 break

@@ -109,7 +109,8 @@ def format_report(res: ExplainResult, prep: Prepared) -> str:
         lines.append("")
         base = "the nominal plant" if r == 0 else "the model with " + ", ".join(rnd["model"])
         lines.append(f"round {r + 1}: candidates on top of {base} (gap {rnd['gap_m'] * um:.3f} um); the best is "
-                     f"named when its robust gain (the two best windows left out), less {ev['param_charge']:g} floor^2 "
+                     f"named when its robust gain (the two best windows counted as the third), less "
+                     f"{ev['param_charge']:g} floor^2 "
                      f"per parameter, is at least {ev['margin']:g} floor^2:")
         lines.append(f"  {'candidate':<11} {'gap um':>9} {'shrink':>7} {'robust gain':>12} {'better':>6} "
                      f"{'worse':>5}  params")

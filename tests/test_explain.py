@@ -292,3 +292,19 @@ def test_masked_effects_both_named():
     named = {e["effect"]: e["params"] for e in res.effects}
     assert {"mass", "periodic"} <= set(named), res.report
     assert named["mass"]["mass"] == pytest.approx(60.0, rel=0.1)
+
+
+def test_no_single_window_decides_but_a_few_do():
+    """The robust gain: one window's transient (or two) counts only as much as the third best window, while
+    an effect that shows in a few windows (a faint stribeck at its starts) keeps its gain."""
+    from drivectl.tools.explain import _window_stats
+
+    cur = np.full(60, 4.0)
+    one = cur.copy()
+    one[7] = 0.0  # one window explained, the rest unchanged
+    assert _window_stats(cur, one)["robust_gain"] == pytest.approx(0.0)
+    few = cur.copy()
+    few[[3, 17, 29, 41]] = 0.0  # four starts explained
+    st = _window_stats(cur, few)
+    assert st["robust_gain"] == pytest.approx(4 * 4.0 / 60)
+    assert st["improved"] == 4 and st["worse"] == 0

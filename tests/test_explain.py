@@ -308,3 +308,14 @@ def test_no_single_window_decides_but_a_few_do():
     st = _window_stats(cur, few)
     assert st["robust_gain"] == pytest.approx(4 * 4.0 / 60)
     assert st["improved"] == 4 and st["worse"] == 0
+
+
+def test_periodic_fit_on_top_of_a_long_delay(clean_traces):
+    """The one-step force residual on a model with a named 6 ms delay reads efforts 6 cycles back (it
+    raised IndexError in the lookahead of a shipped clean trace)."""
+    from drivectl.tools.explain_fit import fit_periodic, force_residual
+
+    prep = prepare(clean_traces["asmc"], load_plant("rigid-x").with_effect("delay", delay=0.0057))
+    r, ok = force_residual(prep)
+    assert ok.sum() > 1000 and np.all(np.isfinite(r[ok]))
+    assert math.isfinite(fit_periodic(prep).gap)

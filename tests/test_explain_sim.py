@@ -155,3 +155,23 @@ def test_workers_follow_the_free_cores(monkeypatch, load, workers):
     monkeypatch.setattr(explain.os, "getloadavg", lambda: (load, load, load))
     monkeypatch.setattr(explain.threading, "active_count", lambda: 1)
     assert explain.choose_workers() == workers
+
+
+@pytest.mark.parametrize("specs", [
+    [BASE.with_effect("resonance", frequency=f, damping=z) for f, z in ((12.0, 0.02), (40.0, 0.05), (300.0, 0.7))],
+    [BASE.with_effect("offset", force=-20.0).with_effect("resonance", frequency=60.0, damping=0.1)],
+    [SYMMETRIC.with_effect("resonance", frequency=25.0, damping=0.03)],
+], ids=["resonance", "resonance+offset", "symmetric resonance"])
+def test_two_body_whole_cycles_equal_the_substeps(data, specs, monkeypatch):
+    plants = [s.build(DT) for s in specs]
+    win = _windows(data)
+    fast = BatchSim(plants)
+    assert fast.cycle_ok
+    x_fast, v_fast = fast.run_with_velocity(win)
+    monkeypatch.setattr(explain_sim, "CYCLE_MIN_SUBSTEPS", 10 ** 6)
+    slow = BatchSim(plants)
+    assert not slow.cycle_ok
+    x_slow, v_slow = slow.run_with_velocity(win)
+    assert np.max(np.abs(x_fast - x_slow)) < 1e-12
+    assert np.max(np.abs(v_fast - v_slow)) < 1e-10
+    assert np.mean(v_slow == 0.0) > 0.01  # the table sticks somewhere: the substeps ran too

@@ -17,7 +17,9 @@ Speed (issue 17 point 6; bench/explain_speed.py): a one-body plant whose input i
 (no Stribeck, periodic, time disturbance or delay) takes a whole cycle in closed form wherever the body
 keeps moving one way (friction is then a constant force: s -> P_n s + Q_n u, the substep map composed)
 or stays stuck, and runs the substeps only for the few (window, candidate) pairs that stop, start or
-reverse within that cycle: the same numbers to ~1e-14 m, 2-8x faster at 10 substeps. Everything else
+reverse within that cycle: the same numbers to ~1e-14 m, 2-8x faster at 10 substeps. A linearly coupled
+two-body plant (a resonance; friction on the table only) does the same, its table velocity checked on
+every substep since the mode rings (equal to ~1e-12 m). Everything else
 runs the substeps, operation for operation as Plant.step orders them, with the selections a batch does not need
 (direction-independent friction, a00 = 1 and a10 = 0 without a spring) left out.
 """
@@ -79,8 +81,9 @@ def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float
                    applied_rows[starts].copy(), side)
 
 
-#: whole cycles in closed form (BatchSim._cycle_one) from this many substeps per cycle on: measured on a
-#: 10 s trace, with 2 substeps the per-cycle bookkeeping costs about what it saves, with 10 it is 2-8x faster
+#: whole cycles in closed form (BatchSim._cycle_one, _cycle_two) from this many substeps per cycle on: measured
+#: on a 10 s trace and the EMPS record, with 2 substeps the per-cycle bookkeeping costs about what it saves,
+#: with 10 it is 2-8x faster (one body) and 1.2-2.7x (two, where the mode makes the table stop more often)
 CYCLE_MIN_SUBSTEPS = 4
 
 
@@ -146,7 +149,9 @@ class BatchSim:
         self.c_pos = np.array([[b.c_pos for b in x.bodies] for x in d])
         self.c_neg = np.array([[b.c_neg for b in x.bodies] for x in d])
         self.cycle_ok = False
-        if not self.two:
+        if self.two:
+            self._two_body_tables()
+        else:
             self._one_body_tables()
 
     # ---------------------------------------------------------------------------------------------
@@ -420,109 +425,186 @@ class BatchSim:
             x, v = xf, vf
         return x, v
 
-    def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None,
-                 with_velocity: bool = False) -> Any:
-        """Two bodies, Plant._step_two operation for operation on flat (window x candidate) rows.
-
-        The substep matrices of every element are gathered in one take from a coefficient-major table
-        (24 rows: A row by row, then B), once per run where no state of motion changes them."""
-        W, C, L = len(win.start), len(self.plants), win.length
-        N = W * C
-        init = self._initial(win)
-        if internal is not None:
-            init[0] = init[2] + internal[0]
-            init[1] = init[3] + internal[1]
-        x0, v0, x1, v1 = (np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init)
-        out = np.empty((W, C, L))
-        out_v = np.empty((W, C, L)) if with_velocity else None
-        h, dt, H = self.h, self.dt, win.history
-        cid = np.tile(np.arange(C), W)
-        wid = np.repeat(np.arange(W), C)
+    def _two_body_tables(self) -> None:
+        """Coefficient-major substep matrices (24 rows: A row by row, then B; columns candidate x 8 states
+        of motion), which states of motion matter, and where a whole cycle can be taken at once its
+        propagation per direction of the table (P_i = A^i, Q_i = (I + ... + A^(i-1)) B, i = 1..n)."""
         A, B = self.A, self.B
-        table = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()  # (24, C * 8)
-        base = cid * 8
-        has_gap = bool(np.any(self.gap > 0))
+        C = len(self.plants)
+        self._table2 = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()
 
         def same(a: int, b: int) -> bool:
             return bool(np.array_equal(A[:, a], A[:, b]) and np.array_equal(B[:, a], B[:, b]))
 
-        # which states of motion select other matrices (index: engaged 4, body 0 moving - 2, table moving - 1)
-        fixed = not has_gap and same(4, 6) and same(5, 7) and same(4, 5)
-        G = np.take(table, base + 4, axis=1) if fixed else None
-        gap, kh = self.gap[cid], self.stiff[cid] * (0.5 * self.gap[cid])
-        half = 0.5 * gap
-        lim_in = self.limit[cid]
-        forces = self.has_offset or self.has_periodic
-        zeros = np.zeros(N)
-        off = self.offset[cid] if forces else zeros
+        has_gap = bool(np.any(self.gap > 0))
+        # index of the matrices: engaged 4, body 0 moving - 2, table moving - 1
+        self._screw_free = not has_gap and same(4, 6) and same(5, 7)  # body 0's direction changes nothing
+        self._fixed2 = self._screw_free and same(4, 5)  # nor does the table's
+        self._stribeck2 = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
+        n = self.substeps
+        self.cycle_ok = (self._screw_free and n >= CYCLE_MIN_SUBSTEPS and not self.coulomb[0]
+                         and not (any(self._stribeck2) or self.has_periodic or self.has_dist or self.delayed))
+        if not self.cycle_ok:
+            return
+        self._P2, self._Q2 = {}, {}
+        for tag, k in (("p", 4), ("n", 5)):
+            P = np.empty((n + 1, C, 4, 4))
+            Q = np.empty((n + 1, C, 4, 2))
+            P[0], Q[0] = np.eye(4), 0.0
+            for i in range(1, n + 1):
+                P[i] = A[:, k] @ P[i - 1]
+                Q[i] = A[:, k] @ Q[i - 1] + B[:, k]
+            self._P2[tag], self._Q2[tag] = P, Q
+
+    def _params_two(self, cid: np.ndarray, wid: np.ndarray, win: Windows) -> dict[str, Any]:
+        """Per-element parameters of the two-body substeps for flat elements of candidates ``cid``."""
+        p: dict[str, Any] = {"cid": cid, "wid": wid, "base": cid * 8, "lim": self.limit[cid],
+                             "gap": self.gap[cid], "kh": self.stiff[cid] * (0.5 * self.gap[cid]),
+                             "off": self.offset[cid] if (self.has_offset or self.has_periodic) else np.zeros(len(cid)),
+                             "fcp": self.fc_pos[cid].T, "fcn": self.fc_neg[cid].T,
+                             "exc": self.st_exc[cid].T, "stv": self.st_vel[cid].T}
+        p["half"] = 0.5 * p["gap"]
         if self.has_periodic:
-            pa, pk, pp = self.per_amp[cid], self.per_k[cid], self.per_phase[cid]
+            p["pa"], p["pk"], p["pp"] = self.per_amp[cid], self.per_k[cid], self.per_phase[cid]
         if self.has_dist:
-            da, dw, t0 = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
+            p["da"], p["dw"], p["t0"] = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
         if self.delayed:
-            dc, df = self.delay_cycles[cid], self.delay_frac[cid]
-        fcp, fcn = self.fc_pos[cid].T, self.fc_neg[cid].T  # (2, N)
-        exc, stv = self.st_exc[cid].T, self.st_vel[cid].T
-        stribeck = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
+            p["dc"], p["df"] = self.delay_cycles[cid], self.delay_frac[cid]
+        p["G"] = np.take(self._table2, p["base"] + 4, axis=1) if self._fixed2 else None
+        if self.cycle_ok:
+            n = self.substeps
+            for tag in ("p", "n"):
+                P, Q = self._P2[tag], self._Q2[tag]
+                # the state after the cycle: rows r of [P_n | Q_n], (4, 6, N); the table velocity after each
+                # earlier substep: row 3 of [P_i | Q_i], i = 1..n-1, (n-1, 6, N)
+                p["fin" + tag] = np.ascontiguousarray(np.concatenate((P[n], Q[n]), axis=-1)[cid].transpose(1, 2, 0))
+                p["chk" + tag] = np.ascontiguousarray(
+                    np.concatenate((P[1:n, :, 3], Q[1:n, :, 3]), axis=-1)[:, cid].transpose(0, 2, 1))
+        return p
+
+    def _run_two(self, win: Windows, internal: tuple[np.ndarray, np.ndarray] | None = None,
+                 with_velocity: bool = False) -> Any:
+        """Two bodies on flat (window x candidate) rows: whole cycles in closed form where the coupling is
+        linear and the table keeps moving one way (_cycle_two), else Plant._step_two's substeps (_substeps_two)."""
+        W, C, L = len(win.start), len(self.plants), win.length
+        init = self._initial(win)
+        if internal is not None:
+            init[0] = init[2] + internal[0]
+            init[1] = init[3] + internal[1]
+        s = [np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init]
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L)) if with_velocity else None
+        par = self._params_two(np.tile(np.arange(C), W), np.repeat(np.arange(W), C), win)
         for j in range(L):
-            if self.delayed:
-                cur = win.applied[wid, H + j - dc]
-                prev = win.applied[wid, H + j - dc - 1]
-            else:
-                f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
-            for i in range(self.substeps):
-                if self.delayed:
-                    w_prev = np.clip((df * dt - i * h) / h, 0.0, 1.0)
-                    f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
-                else:
-                    f0 = f_in
-                f1 = off
-                if self.has_periodic:
-                    xm = x1 + 0.5 * h * v1
-                    f1 = f1 + pa * np.sin(pk * xm + pp)
-                if self.has_dist:
-                    dist = da * np.sin(dw * (t0 + j * dt + (i + 0.5) * h))
-                    f0 = f0 + dist
-                    f1 = f1 + dist
-                if G is None:
-                    engaged = True
-                    if has_gap:
-                        rel = x0 - x1
-                        over = (rel > half) & (gap > 0)
-                        under = (rel < -half) & (gap > 0)
-                        push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
-                        f0 = f0 + push
-                        f1 = f1 - push
-                        engaged = over | under | (gap <= 0)
-                    d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
-                    d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
-                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
-                    Gs = np.take(table, base + k, axis=1)
-                else:
-                    Gs = G
-                s = (x0, v0, x1, v1)
-                new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
-                       + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
-                for body in (1, 0):
-                    if not self.coulomb[body]:
-                        continue
-                    vi = 2 * body + 1
-                    vf = new[vi]
-                    g = Gs[16 + 2 * vi + body]
-                    positive = vf > 0.0
-                    lim = np.where(positive, fcp[body], fcn[body])
-                    if stribeck[body]:
-                        r_ = s[vi] / stv[body]
-                        lim = lim + exc[body] * np.exp(-r_ * r_)
-                    # Moreau, as in _substeps_one; the impulse through the body's column of B
-                    lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
-                    new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
-                    new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
-                x0, v0, x1, v1 = new
-            out[:, :, j] = x1.reshape(W, C)
+            s = self._cycle_two(win, j, s, par) if self.cycle_ok else self._substeps_two(win, j, s, par)
+            out[:, :, j] = s[2].reshape(W, C)
             if out_v is not None:
-                out_v[:, :, j] = v1.reshape(W, C)
+                out_v[:, :, j] = s[3].reshape(W, C)
         return (out, out_v) if with_velocity else out
+
+    def _cycle_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
+        """Step j in closed form for the elements whose table keeps moving one way all cycle (its Coulomb
+        friction a constant force then; body 0 carries none and its direction changes no matrix), checked
+        on every substep's table velocity; by substeps for the rest (a stop, a start, a reversal)."""
+        f0 = np.clip(win.applied[par["wid"], win.history + j], -par["lim"], par["lim"])
+        f1 = par["off"]
+        x0, v0, x1, v1 = s
+        pos = v1 > 0.0
+        coul = bool(self.coulomb[1])
+        eps = self.CYCLE_V_MARGIN
+        new = None
+        ok = None
+        for tag, sign in (("p", 1.0), ("n", -1.0)):
+            u1 = (f1 - par["fcp"][1] if sign > 0 else f1 + par["fcn"][1]) if coul else f1
+            z = np.stack((x0, v0, x1, v1, np.broadcast_to(f0, x0.shape), np.broadcast_to(u1, x0.shape)))
+            fin = np.einsum("rkN,kN->rN", par["fin" + tag], z)
+            if self._fixed2 and not coul:  # linear, one set of matrices: nothing can switch
+                return list(fin)
+            good = (sign * v1 > eps) & (sign * fin[3] > eps)
+            if self.substeps > 1:  # the mode rings: every substep's table velocity, not only the ends
+                good &= np.all(sign * np.einsum("ikN,kN->iN", par["chk" + tag], z) > eps, axis=0)
+            mine = pos if sign > 0 else ~pos
+            new = fin if new is None else np.where(mine, fin, new)
+            ok = (mine & good) if ok is None else ok | (mine & good)
+        assert new is not None and ok is not None
+        new = [np.array(r) for r in new]
+        odd = np.flatnonzero(~ok)
+        if len(odd):
+            sub = {k: (v[..., odd] if isinstance(v, np.ndarray) else v) for k, v in par.items()}
+            res = self._substeps_two(win, j, [a[odd] for a in s], sub)
+            for r in range(4):
+                new[r][odd] = res[r]
+        return new
+
+    def _substeps_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
+        """Step j by the plant's substeps for flat elements with parameters ``par``: Plant._step_two operation
+        for operation (the matrices of each element gathered in one take from the coefficient-major table)."""
+        h, dt, H = self.h, self.dt, win.history
+        wid, base, lim_in = par["wid"], par["base"], par["lim"]
+        gap, half, kh = par["gap"], par["half"], par["kh"]
+        fcp, fcn, exc, stv = par["fcp"], par["fcn"], par["exc"], par["stv"]
+        has_gap = bool(np.any(gap > 0))
+        G = par["G"]
+        table = self._table2
+        x0, v0, x1, v1 = s
+        if self.delayed:
+            cur = win.applied[wid, H + j - par["dc"]]
+            prev = win.applied[wid, H + j - par["dc"] - 1]
+        else:
+            f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
+        for i in range(self.substeps):
+            if self.delayed:
+                w_prev = np.clip((par["df"] * dt - i * h) / h, 0.0, 1.0)
+                f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
+            else:
+                f0 = f_in
+            f1 = par["off"]
+            if self.has_periodic:
+                xm = x1 + 0.5 * h * v1
+                f1 = f1 + par["pa"] * np.sin(par["pk"] * xm + par["pp"])
+            if self.has_dist:
+                dist = par["da"] * np.sin(par["dw"] * (par["t0"] + j * dt + (i + 0.5) * h))
+                f0 = f0 + dist
+                f1 = f1 + dist
+            if G is None:
+                engaged = True
+                if has_gap:
+                    rel = x0 - x1
+                    over = (rel > half) & (gap > 0)
+                    under = (rel < -half) & (gap > 0)
+                    push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
+                    f0 = f0 + push
+                    f1 = f1 - push
+                    engaged = over | under | (gap <= 0)
+                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
+                if self._screw_free:
+                    k = np.where(d1, 4, 5)
+                else:
+                    d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
+                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                Gs = np.take(table, base + k, axis=1)
+            else:
+                Gs = G
+            old = (x0, v0, x1, v1)
+            new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
+                   + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
+            for body in (1, 0):
+                if not self.coulomb[body]:
+                    continue
+                vi = 2 * body + 1
+                vf = new[vi]
+                g = Gs[16 + 2 * vi + body]
+                positive = vf > 0.0
+                lim = np.where(positive, fcp[body], fcn[body])
+                if self._stribeck2[body]:
+                    r_ = old[vi] / stv[body]
+                    lim = lim + exc[body] * np.exp(-r_ * r_)
+                # Moreau, as in _substeps_one; the impulse through the body's column of B
+                lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
+                new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
+                new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
+            x0, v0, x1, v1 = new
+        return [x0, v0, x1, v1]
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:

@@ -211,10 +211,12 @@ def force_residual(prep: Prepared) -> tuple[np.ndarray, np.ndarray]:
     force), so rows slower than 1 mm/s or with a reversal inside the step are dropped.
     """
     n = len(prep.pos)
-    starts = np.arange(1, n - 1)
-    win = make_windows(prep.pos, prep.vel, prep.effort, prep.dt, 1, history=2, starts=starts,
-                       transport=prep.transport)
     plant = prep.spec.build(prep.dt)
+    # the efforts a step reads go back by the model's delay (a named `delay` of several cycles) plus two
+    history = 2 + (plant.delay[0] + 1 if plant.delay else 0)
+    starts = np.arange(history, n - 1)
+    win = make_windows(prep.pos, prep.vel, prep.effort, prep.dt, 1, history=history, starts=starts,
+                       transport=prep.transport)
     _, v_sim = BatchSim([plant]).run_with_velocity(win)
     gain = prep.dt / prep.spec.nominal_mass
     r = np.full(n, np.nan)

@@ -233,7 +233,9 @@ def main(argv: list[str] | None = None) -> int:
     pairs = score_pairs(args.pairs, args.seed, v, w) if "pairs" in sets else {}
     z = score_z(args.z, 2, args.seed, v, w) if "z" in sets else {}
     real = score_real(v, w) if "real" in sets else {}
-    per10 = [b["seconds_per_10s_trace"] for b in (single, pairs, z) if b]
+    # `--sets shipped` alone leaves "single" holding only the shipped block
+    per10 = [b["seconds_per_10s_trace"] for b in (single, single.get("shipped_clean", {}), pairs, z)
+             if b and "seconds_per_10s_trace" in b]
     result = {"single": single, "pairs": pairs, "z": z, "real": real,
               "seconds_per_trace": statistics.mean(per10) if per10 else float("nan")}
     missed = []

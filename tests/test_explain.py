@@ -292,3 +292,30 @@ def test_masked_effects_both_named():
     named = {e["effect"]: e["params"] for e in res.effects}
     assert {"mass", "periodic"} <= set(named), res.report
     assert named["mass"]["mass"] == pytest.approx(60.0, rel=0.1)
+
+
+def test_no_single_window_decides_but_a_few_do():
+    """The robust gain: one window's transient (or two) counts only as much as the third best window, while
+    an effect that shows in a few windows (a faint stribeck at its starts) keeps its gain."""
+    from drivectl.tools.explain import _window_stats
+
+    cur = np.full(60, 4.0)
+    one = cur.copy()
+    one[7] = 0.0  # one window explained, the rest unchanged
+    assert _window_stats(cur, one)["robust_gain"] == pytest.approx(0.0)
+    few = cur.copy()
+    few[[3, 17, 29, 41]] = 0.0  # four starts explained
+    st = _window_stats(cur, few)
+    assert st["robust_gain"] == pytest.approx(4 * 4.0 / 60)
+    assert st["improved"] == 4 and st["worse"] == 0
+
+
+def test_periodic_fit_on_top_of_a_long_delay(clean_traces):
+    """The one-step force residual on a model with a named 6 ms delay reads efforts 6 cycles back (it
+    raised IndexError in the lookahead of a shipped clean trace)."""
+    from drivectl.tools.explain_fit import fit_periodic, force_residual
+
+    prep = prepare(clean_traces["asmc"], load_plant("rigid-x").with_effect("delay", delay=0.0057))
+    r, ok = force_residual(prep)
+    assert ok.sum() > 1000 and np.all(np.isfinite(r[ok]))
+    assert math.isfinite(fit_periodic(prep).gap)

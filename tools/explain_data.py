@@ -248,7 +248,8 @@ def _internal(prep: Prepared, plants: list[Plant]) -> tuple[np.ndarray, np.ndarr
 
 def simulate(prep: Prepared, specs: list[PlantSpec], substeps: int | None = None) -> np.ndarray:
     """Windowed simulation of each plant: (W, C, L)."""
-    plants = [s.build(prep.dt) for s in specs]
+    # built at the batch's substep count, so that BatchSim need not compile each plant a second time
+    plants = [s.build(prep.dt, int(substeps) if substeps else None) for s in specs]
     return BatchSim(plants, substeps=substeps).run(prep.windows, _internal(prep, plants))
 
 

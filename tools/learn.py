@@ -53,7 +53,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import signal
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.learning import LearnedFeedforward
@@ -168,6 +167,8 @@ class Learning:
         band = f <= self.q_hz
         eps = (REGULARISATION * np.max(np.abs(big_g[band]))) ** 2
         self._l = self.gain * np.conj(big_g) / (np.abs(big_g) ** 2 + eps)
+        from scipy import signal  # here, not at import: every drivectl command imports this module
+
         self._b, self._a = signal.butter(2, self.q_hz, fs=1.0 / self.dt)
         # nothing in the first cycles, then a short raised-cosine ramp: a controller starts with empty
         # histories (a time-delay estimator has no acceleration for its first cycles, eq 21 of paper 000)
@@ -182,6 +183,8 @@ class Learning:
 
     def q(self, x: np.ndarray) -> np.ndarray:
         """The zero-phase Q-filter (forward and backward: no lag, 4th order in magnitude)."""
+        from scipy import signal
+
         return signal.filtfilt(self._b, self._a, x, padtype="constant") if len(x) > 12 else np.asarray(x)
 
     def update(self, correction: np.ndarray, error: np.ndarray) -> np.ndarray:

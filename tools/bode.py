@@ -56,7 +56,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import signal
 from scipy.linalg import expm
 
 from drivectl.controllers.base import Controller
@@ -309,6 +308,8 @@ class Mode:
 
 def find_mode(freqs: np.ndarray, h: np.ndarray, coherence: np.ndarray, delay_s: float) -> Mode | None:
     """The most prominent accelerance peak that qualifies as a mode (see the module doc), or None."""
+    from scipy import signal  # here: the CLI imports this module to build its parser (0.9 s of scipy.signal)
+
     w = 2 * math.pi * freqs
     acc_db = 20 * np.log10(np.maximum(np.abs(h) * w**2, 1e-300))
     good = coherence >= MIN_COHERENCE
@@ -339,6 +340,8 @@ def find_mode(freqs: np.ndarray, h: np.ndarray, coherence: np.ndarray, delay_s: 
 def estimate_frf(r: np.ndarray, u: np.ndarray, y: np.ndarray, n: int, dt: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(freqs, H = S_ry / S_ru, u-y coherence) over whole periods of ``n`` samples (first dropped)."""
+    from scipy import signal
+
     periods = len(u) // n
     if periods < 3:
         raise BodeError(f"bode: {len(u)} samples hold {periods} excitation periods of {n}; need at least 3")

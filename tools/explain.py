@@ -286,7 +286,7 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
         rounds: list[dict[str, Any]] = []
         failed_all: dict[str, str] = {}
         first_rank: list[str] = []
-        gap_at: dict[str, float] = {}  # fitter key -> the whole model's gap when that effect was named
+        gap_at: dict[str, float] = {}  # fitter key -> the gap of the final model up to that effect
         for r in range(MAX_EFFECTS):
             if r == 0:
                 round_keys = keys
@@ -379,15 +379,16 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                 break
             # an effect the joint refit no longer needs (its gain gone, e.g. a lash width driven to nothing) is dropped
             named, current, mse_cur = _prune(prep, nominal, trial, mse_trial, floor)
-            gap_at[best.key] = math.sqrt(float(np.mean(mse_cur)))
             if len(named) < len(trial):
                 rounds[-1]["decision"] += "; dropped after the joint refit: " + ", ".join(
                     f.effect for f in trial if f not in named)
         if named:
             named, current, mse_cur, swaps = _simplify(prep, nominal, named, mse_cur, floor, alone)
-            if swaps:  # the gaps after each effect, of the simplified model built up in order
-                mses_in_order, _ = _mse_of(prep, [_build(nominal, named[:j + 1]) for j in range(len(named))])
-                gap_at = {f.key: math.sqrt(float(np.mean(mses_in_order[:, j]))) for j, f in enumerate(named)}
+            # the gaps after each effect, of the final model built up in order: a later joint refit (or a
+            # simplification) changes the earlier effects' parameters, so the gaps read when each was named
+            # would not add up to the final gap
+            mses_in_order, _ = _mse_of(prep, [_build(nominal, named[:j + 1]) for j in range(len(named))])
+            gap_at = {f.key: math.sqrt(float(np.mean(mses_in_order[:, j]))) for j, f in enumerate(named)}
             for old_fit, new_fit in swaps:
                 if new_fit is None:
                     rounds[-1]["decision"] += (f"; then {old_fit.key} dropped: the others refitted without it "

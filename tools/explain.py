@@ -380,8 +380,9 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
             # an effect the joint refit no longer needs (its gain gone, e.g. a lash width driven to nothing) is dropped
             named, current, mse_cur = _prune(prep, nominal, trial, mse_trial, floor)
             if len(named) < len(trial):
+                kept = {f.key for f in named}  # (the kept ones are refitted: new objects, same keys)
                 rounds[-1]["decision"] += "; dropped after the joint refit: " + ", ".join(
-                    f.effect for f in trial if f not in named)
+                    f.effect for f in trial if f.key not in kept) + " (the others refitted without it)"
         if named:
             named, current, mse_cur, swaps = _simplify(prep, nominal, named, mse_cur, floor, alone)
             # the gaps after each effect, of the final model built up in order: a later joint refit (or a
@@ -543,7 +544,10 @@ def _gaps_grouped_of(prep: Prepared, nominal: PlantSpec, models: list[list[Fit]]
 
 def _prune(prep: Prepared, nominal: PlantSpec, fits: list[Fit], mse: np.ndarray,
            floor: float) -> tuple[list[Fit], PlantSpec, np.ndarray]:
-    """Drop named effects that no longer earn their parameters once the others were refitted with them."""
+    """Drop named effects that no longer earn their parameters once the others were refitted with them;
+    the ones kept are then refitted together without the dropped (fitted beside it, they sat where it
+    had pulled them: the next round would find their own optimum and credit it to its candidate)."""
+    dropped = False
     while len(fits) > 1:
         specs = [_build(nominal, fits[:i] + fits[i + 1:]) for i in range(len(fits))]
         mses, _ = _mse_of(prep, specs)
@@ -554,6 +558,12 @@ def _prune(prep: Prepared, nominal: PlantSpec, fits: list[Fit], mse: np.ndarray,
             break
         fits = fits[:i] + fits[i + 1:]
         mse = mses[:, i]
+        dropped = True
+    if dropped:
+        refit = refine_jointly(prep, nominal, fits)
+        mse_r, _ = _mse_of(prep, [_build(nominal, refit)])
+        if float(np.mean(mse_r[:, 0])) < float(np.mean(mse)):
+            fits, mse = refit, mse_r[:, 0]
     return fits, _build(nominal, fits), mse
 
 

@@ -54,3 +54,18 @@ class SineProfile:
     def at(self, t: float) -> Reference:
         p, v, acc, j = (float(x) for x in self.sample(np.array(t)))
         return Reference(p, v, acc, j)
+
+
+class SimWallClock:
+    """A simulated wall clock for paced runs (controllers/servo.Pacer(now=, sleep=)): time passes only by
+    the pacer's waits, a microsecond per reading (so its spin ends) and what a test injects. Nothing sleeps."""
+
+    def __init__(self, t0: float = 0.0) -> None:
+        self.t = t0
+
+    def now(self) -> float:
+        self.t += 1e-6
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += s

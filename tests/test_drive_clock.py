@@ -9,6 +9,7 @@ import struct
 import can
 import canopen
 import pytest
+from helpers import SimWallClock
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import NmtState
@@ -174,26 +175,12 @@ def test_in_process_the_heartbeat_consumer_runs_on_the_drive_clock():
         assert 295 <= safe <= 305  # 300 ms after the master's last heartbeat (sent at its first SYNC)
 
 
-class _WallClock:
-    """A simulated wall clock for a paced run: time passes only by the pacer's waits (and a little per
-    reading, so its spin ends) and by the stalls the test injects. Nothing sleeps."""
-
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def now(self) -> float:
-        self.t += 1e-6
-        return self.t
-
-    def sleep(self, s: float) -> None:
-        self.t += s
-
 
 class _LateMaster:
     """The controller of the run, stalling the master ``stall_s`` of wall time in its ``at``-th step (between
     the cycle's SYNC and its RPDO: the master runs late)."""
 
-    def __init__(self, inner, clock: _WallClock, at: int, stall_s: float) -> None:
+    def __init__(self, inner, clock: SimWallClock, at: int, stall_s: float) -> None:
         self.inner, self.clock, self.at, self.stall_s, self.steps = inner, clock, at, stall_s, 0
         self.dt = inner.dt
 
@@ -223,7 +210,7 @@ def _paced_run(stall_s: float, *, paced: bool = True, rpdo_timeout_ms: int | Non
     from drivectl.profiles.library import load_profile
 
     prof = load_profile(ac.profile)
-    clock = _WallClock()
+    clock = SimWallClock(100.0)
     m = open_machine(cfg, ["x"], start={"x": prof.start_position})
     ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=m.specs["x"], axis="x")
     late = _LateMaster(ctrl, clock, at=200, stall_s=stall_s)

@@ -58,9 +58,10 @@ BATCHES = {
 }
 
 
-@pytest.mark.parametrize("name", list(BATCHES))
-def test_whole_cycles_equal_the_substeps(data, name, monkeypatch):
-    plants = [s.build(DT) for s in BATCHES[name]]
+def _fast_and_slow(specs, data, monkeypatch):
+    """The batch run with whole cycles in closed form, then with substeps only; checks they agree and
+    returns the substep run's velocities."""
+    plants = [s.build(DT) for s in specs]
     win = _windows(data)
     fast = BatchSim(plants)
     assert fast.cycle_ok  # the closed form is taken for these
@@ -71,6 +72,12 @@ def test_whole_cycles_equal_the_substeps(data, name, monkeypatch):
     x_slow, v_slow = slow.run_with_velocity(win)
     assert np.max(np.abs(x_fast - x_slow)) < 1e-12
     assert np.max(np.abs(v_fast - v_slow)) < 1e-10
+    return v_slow
+
+
+@pytest.mark.parametrize("name", list(BATCHES))
+def test_whole_cycles_equal_the_substeps(data, name, monkeypatch):
+    v_slow = _fast_and_slow(BATCHES[name], data, monkeypatch)
     # the trace has stuck rows and moving rows (both branches ran)
     assert np.mean(v_slow == 0.0) > 0.01 and np.mean(np.abs(v_slow) > 1e-3) > 0.5
 
@@ -163,15 +170,5 @@ def test_workers_follow_the_free_cores(monkeypatch, load, workers):
     [SYMMETRIC.with_effect("resonance", frequency=25.0, damping=0.03)],
 ], ids=["resonance", "resonance+offset", "symmetric resonance"])
 def test_two_body_whole_cycles_equal_the_substeps(data, specs, monkeypatch):
-    plants = [s.build(DT) for s in specs]
-    win = _windows(data)
-    fast = BatchSim(plants)
-    assert fast.cycle_ok
-    x_fast, v_fast = fast.run_with_velocity(win)
-    monkeypatch.setattr(explain_sim, "CYCLE_MIN_SUBSTEPS", 10 ** 6)
-    slow = BatchSim(plants)
-    assert not slow.cycle_ok
-    x_slow, v_slow = slow.run_with_velocity(win)
-    assert np.max(np.abs(x_fast - x_slow)) < 1e-12
-    assert np.max(np.abs(v_fast - v_slow)) < 1e-10
+    v_slow = _fast_and_slow(specs, data, monkeypatch)
     assert np.mean(v_slow == 0.0) > 0.01  # the table sticks somewhere: the substeps ran too

@@ -4,6 +4,7 @@ state the drive reported, the trace kept, exit 3), not after the profile; warnin
 from __future__ import annotations
 
 import pytest
+from helpers import SimWallClock
 
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.run_checks import RunChecks, RunGuard
@@ -99,23 +100,12 @@ def test_clipped_past_the_fault_threshold_stops_the_run_mid_run(tmp_path, capsys
     assert m["safe_after_cycles"] != "unknown"
 
 
-class _Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def now(self) -> float:
-        self.t += 1e-6
-        return self.t
-
-    def sleep(self, s: float) -> None:
-        self.t += s
-
 
 class _Slow:
     """A controller whose every step takes 1.6 cycles of wall time: each cycle starts later than the last
     (missed deadlines), while the gap between two SYNCs stays within the drive's two-cycle window."""
 
-    def __init__(self, inner, clock: _Clock) -> None:
+    def __init__(self, inner, clock: SimWallClock) -> None:
         self.inner, self.clock, self.dt = inner, clock, inner.dt
 
     def reset(self) -> None:
@@ -133,7 +123,7 @@ def test_missed_deadlines_past_the_fault_threshold_stop_a_paced_run():
     cfg = load_config(None)
     ac = cfg.axis("x")
     prof = load_profile(ac.profile)
-    clock = _Clock()
+    clock = SimWallClock()
     m = open_machine(cfg, ["x"], start={"x": prof.start_position})
     try:
         ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=m.specs["x"], axis="x")

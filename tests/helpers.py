@@ -69,3 +69,29 @@ class SimWallClock:
 
     def sleep(self, s: float) -> None:
         self.t += s
+
+
+def enabled_wall_loop(ch, **kw):
+    """A resident loop on the wall clock (controllers/loop.py) over ``ch``, its clock the monotonic one plus a
+    jump a test sets (``jump["s"]``: a stall as far as the loop can tell, whatever the machine's load), started
+    and with the axis enabled and in servo. Returns (loop, jump); the caller closes the loop."""
+    import time
+
+    from drivectl.controllers.loop import AxisState, ServoLoop
+
+    jump = {"s": 0.0}
+    loop = ServoLoop([ch], clock="wall", now=lambda: time.perf_counter() + jump["s"], **kw)
+    loop.start()
+    rt = loop.axes[ch.axis.name]
+    rt.state = AxisState.ENABLING
+    loop.submit(ch.axis.enable)
+    assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
+    return loop, jump
+
+
+def reset_fault(axis, cycles: int = 4) -> None:
+    """A fault reset by the master, then ``cycles`` cycles (read, zero effort) for the edge and its check."""
+    axis.fault_reset()
+    for _ in range(cycles):
+        axis.read()
+        axis.write(0.0)

@@ -9,7 +9,7 @@ import struct
 import can
 import canopen
 import pytest
-from helpers import SimWallClock
+from helpers import SimWallClock, enabled_wall_loop
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import NmtState
@@ -264,9 +264,7 @@ def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_pa
     ``trace --paced`` does: a loop 200 ms late (a jump injected through its clock, so the outcome does not
     depend on how busy the machine is; below its own stall bound) is caught by the drive's RPDO deadline
     (50 ms here, so that real scheduling hiccups of a loaded test machine do not count)."""
-    import time
 
-    from drivectl.controllers.loop import AxisState, ServoLoop
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel
     from drivectl.tools.config import load_config
@@ -278,15 +276,8 @@ def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_pa
     m = open_machine(cfg, ["x"])
     axis, drive = m.axes["x"], m.drives["x"]
     ch = Channel(axis, make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None, ac.limits)
-    jump = {"s": 0.0}
-    loop = ServoLoop([ch], clock="wall", stall_s=5.0, fault_dir=tmp_path,
-                     now=lambda: time.perf_counter() + jump["s"])
-    loop.start()
+    loop, jump = enabled_wall_loop(ch, stall_s=5.0, fault_dir=tmp_path)
     try:
-        rt = loop.axes["x"]
-        rt.state = AxisState.ENABLING
-        loop.submit(axis.enable)
-        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
         assert drive.drive.error_code == 0
         jump["s"] = 0.2
         assert loop.run_until(lambda: loop.faults, 10.0)

@@ -4,6 +4,7 @@ brought to a safe state within two cycles, the trace kept whole with the fault i
 from __future__ import annotations
 
 import pytest
+from helpers import reset_fault
 
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.servo import Channel, LimitError, StopReason, run_channels
@@ -212,10 +213,7 @@ def test_fault_reset_then_enable_then_trace_again():
         ac = cfg.axis("x")
         res = run_channels([Channel(axis, ctrl, prof, ac.limits)])
         assert res.stop is StopReason.FAULT and drive.drive.power is PowerState.FAULT
-        axis.fault_reset()
-        for _ in range(4):
-            axis.read()
-            axis.write(0.0)
+        reset_fault(axis)
         assert axis.power is PowerState.SWITCH_ON_DISABLED and drive.drive.error_code == 0
         back = load_profile("short-move")
         from drivectl.profiles.ptp import PointToPoint

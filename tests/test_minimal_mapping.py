@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import reset_fault
 
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.servo import Channel, StopReason, run_channels
@@ -193,10 +194,7 @@ def test_minimal_quick_stop_by_a_limit_and_fault_reset_through_the_loop(tmp_path
         ctrl = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=m.specs["x"], axis="x")
         res = run_channels([Channel(axis, ctrl, prof, ac.limits)])
         assert res.stop is StopReason.FAULT and drive.drive.power is PowerState.FAULT
-        axis.fault_reset()
-        for _ in range(4):
-            axis.read()
-            axis.write(0.0)
+        reset_fault(axis)
         assert axis.power is PowerState.SWITCH_ON_DISABLED and drive.drive.error_code == 0
         # a feeble effort limit against a tight window: the following-error limit stops it by quick stop
         limits = type(ac.limits)(following_error=50e-6, following_time=0.005, max_effort=20.0)

@@ -10,6 +10,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from helpers import enabled_wall_loop
 
 import drivectl
 from drivectl.controllers.capture import CaptureError
@@ -384,9 +385,8 @@ def test_approach_plans_a_visible_move_to_the_profile_start_and_the_run_follows(
 def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
     """The stall is injected through the loop's clock (a jump of 10 s between two cycles), so the
     outcome does not depend on how busy the machine is."""
-    import time
 
-    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.loop import AxisState
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.servo import Channel
     from drivectl.plant_emulator.models import load_plant
@@ -395,14 +395,9 @@ def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
     spec = load_plant("rigid-x")
     axis = SimAxis(spec.build(0.001), name="x")
     ch = Channel(axis, make_controller("pid-dob", 0.001, {}, plant=spec, axis="x"), None, config().axis("x").limits)
-    jump = {"s": 0.0}
-    loop = ServoLoop([ch], clock="wall", stall_s=5.0, now=lambda: time.perf_counter() + jump["s"])
-    loop.start()
+    loop, jump = enabled_wall_loop(ch, stall_s=5.0)
     try:
         rt = loop.axes["x"]
-        rt.state = AxisState.ENABLING
-        loop.submit(axis.enable)
-        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 10.0)
         jump["s"] = 10.0  # the next cycle starts 10 s after the last one, as far as the loop can tell
         assert loop.run_until(lambda: loop.faults, 10.0)
         fault = loop.faults[0]

@@ -59,9 +59,10 @@ class RunChecks:
 
     def __post_init__(self) -> None:
         m = self.fault_min_cycles
-        if isinstance(m, float) and m.is_integer():
-            object.__setattr__(self, "fault_min_cycles", int(m))
-        elif isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        if isinstance(m, float) and m.is_integer():  # a TOML number read as float: 1000.0 is 1000 cycles
+            m = int(m)
+            object.__setattr__(self, "fault_min_cycles", m)
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise ValueError(f"checks.fault_min_cycles: must be a whole number of cycles >= 1, got {m!r}")
         for name in ("missed_deadlines", "clipped", "extrapolated"):
             warn, fault = getattr(self, f"{name}_warn"), getattr(self, f"{name}_fault")

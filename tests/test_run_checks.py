@@ -75,6 +75,8 @@ def test_fault_min_cycles_is_checked():
         RunChecks(fault_min_cycles=0)
     with pytest.raises(ValueError, match="checks.fault_min_cycles"):
         RunChecks(fault_min_cycles=2.5)
+    with pytest.raises(ValueError, match="checks.fault_min_cycles"):
+        RunChecks(fault_min_cycles=0.0)  # as the TOML reader hands it over
     assert RunChecks(fault_min_cycles=200.0).fault_min_cycles == 200
 
 

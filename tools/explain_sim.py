@@ -49,7 +49,7 @@ class Windows:
     history: int  # H
     measured: np.ndarray  # (W, L) measured position after each step (rows start+1 .. start+L)
     initial_force: np.ndarray  # (W,) effort acting in the first step (for the two-body initial state)
-    side_force: np.ndarray  # (W,) the last clearly non-zero effort up to the start (which side a lash rests on)
+    side_force: np.ndarray  # (W,) the last clearly non-zero effort up to the start (which side a lash rests on; 0: none yet)
 
 
 def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float, length: int,
@@ -76,7 +76,8 @@ def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float
     meas = pos[starts[:, None] + np.arange(1, length + 1)[None, :]]
     big = np.abs(applied_rows) > side_threshold
     last = np.maximum.accumulate(np.where(big, np.arange(n), 0))
-    side = np.where(big[last], applied_rows[last], applied_rows)[starts]
+    # 0 where no effort has decided the side yet (the trace's start): the screw rests where power-up left it
+    side = np.where(big[last], applied_rows[last], 0.0)[starts]
     return Windows(starts, length, pos[starts].copy(), vel[starts].copy(), starts * dt, applied, history, meas,
                    applied_rows[starts].copy(), side)
 
@@ -179,9 +180,11 @@ class BatchSim:
         k = np.maximum(self.stiff[None, :], 1e-9)
         ext = (m1 * (f - F[0]) + m0 * F[1]) / (k * (m0 + m1))
         half = 0.5 * self.gap[None, :]
-        side = np.where(win.side_force[:, None] >= 0, 1.0, -1.0)
         # against the side the screw rests on; an effort below the threshold pulling the other way
-        # only relaxes the contact (|ext| is small then), it does not cross the dead zone
+        # only relaxes the contact (|ext| is small then), it does not cross the dead zone. Before any
+        # effort decided a side (the trace's first window) the screw sits in the middle, relaxed: the
+        # plant's own rest state, and the guess that is off by at most half the width either way
+        side = np.sign(win.side_force[:, None])
         rel = ext + side * half
         # body 0 (screw or motor side) leads the table by rel
         return [q + rel, v.copy(), q, v]

@@ -28,6 +28,7 @@ from drivectl.tools.explain import (  # noqa: E402
     explain,
     gaps_of,
     prepare,
+    window_mse,
 )
 from drivectl.tools.explain_sim import BatchSim, make_windows  # noqa: E402
 from drivectl.tools.trace import Trace  # noqa: E402
@@ -318,3 +319,45 @@ def test_periodic_fit_on_top_of_a_long_delay(clean_traces):
     r, ok = force_residual(prep)
     assert ok.sum() > 1000 and np.all(np.isfinite(r[ok]))
     assert math.isfinite(fit_periodic(prep).gap)
+
+
+def test_lash_starts_in_the_middle_before_any_effort():
+    """The trace's first window: no effort has pushed the screw to a side yet, so a lash starts relaxed in
+    the middle of its dead zone (the plant's rest state). Started against the + side instead, the true plant
+    missed that window by ~86 um (the motor side breaks away alone, then hits the table) and a 65 Hz
+    `resonance` fitted the trace better than the true lash (pairs: viscous + 14 um lash)."""
+    import dataclasses
+
+    width = 15e-6
+    tr, _ = make_trace(_case("backlash", {"width": width}, "rigid-y", "asmc", {}, PROFILE, seed=5))
+    prep = prepare(tr, load_plant("rigid-y"))
+    assert prep.windows.side_force[0] == 0.0 and np.all(prep.windows.side_force[1:] != 0.0)
+    spec = load_plant("rigid-y").with_effect("backlash", width=width)
+    first = math.sqrt(window_mse(prep, [spec])[0, 0])
+    pushed = dataclasses.replace(prep.windows, side_force=np.where(prep.windows.side_force == 0, 1.0,
+                                                                   prep.windows.side_force))
+    against = math.sqrt(window_mse(dataclasses.replace(prep, windows=pushed), [spec])[0, 0])
+    assert first < width  # off by less than the lash itself
+    assert against > 3 * first
+
+
+def test_overdamped_mode_ranked_after_delay():
+    """A `resonance` at damping >= 0.7 has no resonant peak: it lags without ringing, a delay's signature.
+    Ranked first it stood in for a 0.9 ms delay + 120 Hz mode (named as one 72 Hz mode at damping 0.7);
+    behind the delay, the mode is found on top of it in the next round. A ringing mode stays first."""
+    from drivectl.tools.explain import _overdamped_after_delay
+    from drivectl.tools.explain_fit import Fit
+
+    st = {"robust_gain": 3.0}
+
+    def cands(damping: float, delay_gain: float = 2.0) -> list:
+        return [(3.0, Fit("resonance", {"frequency": 72.0, "damping": damping}, 1.0), st),
+                (2.0, Fit("mass", {"mass": 90.0}, 1.0), st),
+                (1.0, Fit("delay", {"delay": 1e-3}, 1.0), {"robust_gain": delay_gain})]
+
+    c = cands(0.7)
+    assert "ranked after delay" in _overdamped_after_delay(c, 1.0)
+    assert [x[1].key for x in c] == ["delay", "resonance", "mass"]
+    # a ringing mode, or a delay that would not be named itself (1.25 floor^2 needed): the mode stays first
+    for c in (cands(0.3), cands(0.9, delay_gain=1.2)):
+        assert _overdamped_after_delay(c, 1.0) == "" and c[0][1].key == "resonance"

@@ -49,7 +49,7 @@ class Windows:
     history: int  # H
     measured: np.ndarray  # (W, L) measured position after each step (rows start+1 .. start+L)
     initial_force: np.ndarray  # (W,) effort acting in the first step (for the two-body initial state)
-    side_force: np.ndarray  # (W,) the last clearly non-zero effort up to the start (which side a lash rests on; 0: none yet)
+    side_force: np.ndarray  # (W,) the last clearly non-zero effort up to the start (which side a lash rests on; 0 none)
 
 
 def make_windows(pos: np.ndarray, vel: np.ndarray, effort: np.ndarray, dt: float, length: int,

@@ -11,7 +11,11 @@
    law (its velocity filter regressed from the record), the record's reference, 50 nm quantisation and
    2 N white force noise: where the method puts the least gap when the timing is known to be right.
 
-    python bench/explain_emps_profile.py [--json]
+4. with ``--explain``: explain itself on replicas, where the truth is known: the replica (nothing missing),
+   the replica advanced 1 ms, and a replica of the benchmark's symmetric model (its +3.1648 N offset a
+   real constant force) against the reference without its offset.
+
+    python bench/explain_emps_profile.py [--json] [--explain]
 
 Reads the records where they are ($DRIVECTL_EMPS_DIR or shared/real/emps in a parent); never copies them.
 """
@@ -117,6 +121,7 @@ def synthetic_replica(asrecorded: Trace, spec: PlantSpec, seed: int = 1, force_n
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--explain", action="store_true", help="also run explain on the replicas (~1 min)")
     args = ap.parse_args()
     d = emps_dir()
     if d is None:
@@ -133,6 +138,20 @@ def main() -> int:
     spec, model = _best_model(train)
     replica = synthetic_replica(Trace.read(d / "emps-train-asrecorded.csv"), spec)
     out["timing"]["synthetic replica"] = {"model": model, "gap_um_by_shift_ms": timing_profile(replica, spec)}
+    if args.explain:
+        from explain_traces import emps_plant
+
+        from drivectl.tools.explain import explain
+
+        symmetric = synthetic_replica(Trace.read(d / "emps-train-asrecorded.csv"), emps_plant())
+        runs = (("replica", replica, spec), ("replica advanced 1 ms", _cut(replica, slice(None), advance=1), spec),
+                ("symmetric replica, offset left out", symmetric, _nominal()))
+        out["replica_explain"] = {}
+        for name, tr, model_spec in runs:
+            res = explain(tr, model_spec)
+            effects = [{"effect": e["effect"], "params": e["params"]} for e in res.effects]
+            out["replica_explain"][name] = {"effects": effects, "gap_before_um": res.gap_before * 1e6,
+                                            "gap_after_um": res.gap_after * 1e6, "floor_um": res.floor * 1e6}
     if args.json:
         print(json.dumps(out))
         return 0
@@ -143,6 +162,11 @@ def main() -> int:
     print(f"{'record':20s}" + "".join(f"{s:>8s}" for s in out["timing"]["pulses"]["gap_um_by_shift_ms"]))
     for name, r in out["timing"].items():
         print(f"{name:20s}" + "".join(f"{g:8.2f}" for g in r["gap_um_by_shift_ms"].values()))
+    for name, r in out.get("replica_explain", {}).items():
+        named = ", ".join(f"{e['effect']} " + " ".join(f"{k}={v:.4g}" for k, v in e["params"].items())
+                          for e in r["effects"]) or "none"
+        print(f"explain, {name}: {named}; gap {r['gap_before_um']:.1f} -> {r['gap_after_um']:.1f} um "
+              f"(floor {r['floor_um']:.1f})")
     return 0
 
 

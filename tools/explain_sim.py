@@ -426,12 +426,13 @@ class BatchSim:
         return x, v
 
     def _two_body_tables(self) -> None:
-        """Coefficient-major substep matrices (24 rows: A row by row, then B; columns candidate x 8 states
-        of motion), which states of motion matter, and where a whole cycle can be taken at once its
+        """Coefficient-major substep matrices (24 rows: row r of [A | B] at 6 r .. 6 r + 5; columns candidate x 8
+        states of motion), which states of motion matter, and where a whole cycle can be taken at once its
         propagation per direction of the table (P_i = A^i, Q_i = (I + ... + A^(i-1)) B, i = 1..n)."""
         A, B = self.A, self.B
         C = len(self.plants)
-        self._table2 = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()
+        rows = np.concatenate((A.reshape(C * 8, 4, 4), B.reshape(C * 8, 4, 2)), axis=2)
+        self._table2 = rows.reshape(C * 8, 24).T.copy()
 
         def same(a: int, b: int) -> bool:
             return bool(np.array_equal(A[:, a], A[:, b]) and np.array_equal(B[:, a], B[:, b]))
@@ -440,6 +441,8 @@ class BatchSim:
         # index of the matrices: engaged 4, body 0 moving - 2, table moving - 1
         self._screw_free = not has_gap and same(4, 6) and same(5, 7)  # body 0's direction changes nothing
         self._fixed2 = self._screw_free and same(4, 5)  # nor does the table's
+        # whether any direction of motion selects other matrices (no: only the contact state does)
+        self._dirs2 = not all(same(e, e + k) for e in (0, 4) for k in (1, 2, 3))
         self._stribeck2 = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
         n = self.substeps
         self.cycle_ok = (self._screw_free and n >= CYCLE_MIN_SUBSTEPS and not self.coulomb[0]
@@ -470,7 +473,7 @@ class BatchSim:
             p["da"], p["dw"], p["t0"] = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
         if self.delayed:
             p["dc"], p["df"] = self.delay_cycles[cid], self.delay_frac[cid]
-        p["G"] = np.take(self._table2, p["base"] + 4, axis=1) if self._fixed2 else None
+        p["G"] = np.take(self._table2, p["base"] + 4, axis=1).reshape(4, 6, len(cid)) if self._fixed2 else None
         if self.cycle_ok:
             n = self.substeps
             for tag in ("p", "n"):
@@ -538,21 +541,33 @@ class BatchSim:
 
     def _substeps_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j by the plant's substeps for flat elements with parameters ``par``: Plant._step_two operation
-        for operation (the matrices of each element gathered in one take from the coefficient-major table)."""
+        for operation. The state and the substep's two forces are one (6, N) array and each element's
+        [A | B] one (4, 6, N) block gathered from the coefficient-major table: the affine map is one product
+        and one sum over the middle axis, which numpy adds term after term (not pairwise), in the plant's
+        order ``A[r][0] x0 + ... + B[r][1] f1``: the same numbers, bit for bit, in a few calls."""
         h, dt, H = self.h, self.dt, win.history
-        wid, base, lim_in = par["wid"], par["base"], par["lim"]
-        gap, half, kh = par["gap"], par["half"], par["kh"]
+        wid, lim_in = par["wid"], par["lim"]
+        half, kh = par["half"], par["kh"]
         fcp, fcn, exc, stv = par["fcp"], par["fcn"], par["exc"], par["stv"]
-        has_gap = bool(np.any(gap > 0))
+        has_gap = bool(np.any(par["gap"] > 0))
         G = par["G"]
         table = self._table2
-        x0, v0, x1, v1 = s
+        n_el = len(s[0])
+        z = np.empty((6, n_el))  # x0, v0, x1, v1, f0, f1
+        z[:4] = s
         if self.delayed:
             cur = win.applied[wid, H + j - par["dc"]]
             prev = win.applied[wid, H + j - par["dc"] - 1]
         else:
             f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
+        if G is None:
+            # matrix index: engaged 4, body 0 moving - 2, table moving - 1 (see _two_body_tables)
+            base = par["base"]
+            base4, base5 = base + 4, base + 5
+            gapped = par["gap"] > 0
+        coul = [b for b in (1, 0) if self.coulomb[b]]
         for i in range(self.substeps):
+            x0, v0, x1, v1 = z[0], z[1], z[2], z[3]
             if self.delayed:
                 w_prev = np.clip((par["df"] * dt - i * h) / h, 0.0, 1.0)
                 f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
@@ -570,41 +585,42 @@ class BatchSim:
                 engaged = True
                 if has_gap:
                     rel = x0 - x1
-                    over = (rel > half) & (gap > 0)
-                    under = (rel < -half) & (gap > 0)
+                    over = (rel > half) & gapped
+                    under = (rel < -half) & gapped
                     push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
                     f0 = f0 + push
                     f1 = f1 - push
-                    engaged = over | under | (gap <= 0)
-                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
-                if self._screw_free:
-                    k = np.where(d1, 4, 5)
+                    engaged = over | under | ~gapped
+                if self._screw_free:  # only the table's direction selects the matrices
+                    col = np.where((v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0)), base4, base5)
+                elif not self._dirs2:  # only the contact state does
+                    col = np.where(engaged, base4, base)
                 else:
+                    d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
                     d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
-                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
-                Gs = np.take(table, base + k, axis=1)
+                    col = np.where(engaged, base4, base) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                gs = np.take(table, col, axis=1).reshape(4, 6, n_el)
             else:
-                Gs = G
-            old = (x0, v0, x1, v1)
-            new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
-                   + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
-            for body in (1, 0):
-                if not self.coulomb[body]:
-                    continue
+                gs = G
+            z[4] = f0
+            z[5] = f1
+            new = np.multiply(gs, z).sum(axis=1)
+            for body in coul:
                 vi = 2 * body + 1
                 vf = new[vi]
-                g = Gs[16 + 2 * vi + body]
-                positive = vf > 0.0
-                lim = np.where(positive, fcp[body], fcn[body])
+                g = gs[vi, 4 + body]
+                lim = np.where(vf > 0.0, fcp[body], fcn[body])
                 if self._stribeck2[body]:
-                    r_ = old[vi] / stv[body]
+                    r_ = z[vi] / stv[body]
                     lim = lim + exc[body] * np.exp(-r_ * r_)
                 # Moreau, as in _substeps_one; the impulse through the body's column of B
-                lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
-                new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
-                new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
-            x0, v0, x1, v1 = new
-        return [x0, v0, x1, v1]
+                nvf = -vf
+                lam = np.where(np.abs(vf) <= g * lim, nvf / g, np.copysign(lim, nvf))
+                new += gs[:, 4 + body] * lam
+                vb = new[vi]
+                vb[np.abs(vb) < 1e-15] = 0.0
+            z[:4] = new
+        return [z[0], z[1], z[2], z[3]]
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:

@@ -218,6 +218,9 @@ class BatchSim:
             t["a10" + tag], t["a11" + tag] = A[:, k, 1, 0], A[:, k, 1, 1]
             t["b0" + tag], t["b1" + tag] = B[:, k, 0, 0], B[:, k, 1, 0]
         t["fcp"], t["fcn"] = self.fc_pos[:, 0], self.fc_neg[:, 0]
+        # for the substeps' Moreau step: the impulse that holds a body, b1 fc, and the one a sliding body
+        # takes moving up (with direction-dependent B these depend on the direction too: left to the step)
+        t["nfcp"], t["g1p"], t["g1n"] = -t["fcp"], t["b1p"] * t["fcp"], t["b1p"] * t["fcn"]
         t["exc"], t["stv"] = self.st_exc[:, 0], self.st_vel[:, 0]
         t["off"], t["lim"] = self.offset, self.limit
         t["pa"], t["pk"], t["pp"] = self.per_amp, self.per_k, self.per_phase
@@ -277,7 +280,7 @@ class BatchSim:
     def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
         """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
         keys = ["lim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p", "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
-        keys += ["fcp", "fcn"] if self.coulomb[0] else []
+        keys += ["fcp", "fcn", "nfcp", "g1p", "g1n"] if self.coulomb[0] else []
         keys += ["exc", "stv"] if self._stribeck else []
         keys += ["off"] if self.has_offset or self.has_periodic else []
         keys += ["pa", "pk", "pp"] if self.has_periodic else []
@@ -371,57 +374,89 @@ class BatchSim:
     def _substeps_one(self, win: Windows, j: int, x: np.ndarray, v: np.ndarray, w: np.ndarray,
                       co: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Step j by the plant's substeps for flat elements (windows ``w``, coefficients ``co`` gathered for
-        their candidates): Plant._step_one operation for operation."""
+        their candidates): Plant._step_one operation for operation. What does not change within the cycle
+        (the force without a periodic, time or delayed part, its products with B) is computed once, and
+        products of two coefficients once per gather: the same numbers, fewer passes over the arrays."""
         H = win.history
         h = self.h
         lim = co["lim"]
+        const_f = not (self.delayed or self.has_periodic or self.has_dist)
         if self.delayed:
             dc = co["dc"]
             cur = win.applied[w, H + j - dc]
             prev = win.applied[w, H + j - dc - 1]
         else:
             f_in = np.clip(win.applied[w, H + j], -lim, lim)
+            if self.has_offset and const_f:
+                f_in = f_in + co["off"]
         coul = bool(self.coulomb[0])
         forces = self.has_offset or self.has_periodic
         rigid = self._rigid
+        sym = self._symmetric
+        if sym:
+            a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
+        if const_f:
+            f = f_in
+            fpos = f >= 0.0
+            if sym:
+                b0f, b1f = b0 * f, b1 * f
         for i in range(self.substeps):
-            if self.delayed:
-                w_prev = np.clip((co["df"] * self.dt - i * h) / h, 0.0, 1.0)
-                f = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim, lim)
-            else:
-                f = f_in
-            if forces:
-                f = f + co["off"]
-                if self.has_periodic:
-                    xm = x + 0.5 * h * v
-                    f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
-            if self.has_dist:
-                f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
-            if self._symmetric:  # the same coefficients either way: no direction to look at
-                a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
-            else:
-                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
-                a00, a01 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a01p"], co["a01n"])
-                a10, a11 = np.where(d, co["a10p"], co["a10n"]), np.where(d, co["a11p"], co["a11n"])
+            if not const_f:
+                if self.delayed:
+                    w_prev = np.clip((co["df"] * self.dt - i * h) / h, 0.0, 1.0)
+                    f = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim, lim)
+                else:
+                    f = f_in
+                if forces:
+                    f = f + co["off"]
+                    if self.has_periodic:
+                        xm = x + 0.5 * h * v
+                        f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
+                if self.has_dist:
+                    f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
+            if not sym:
+                d = (v > 0.0) | ((v == 0.0) & (fpos if const_f else f >= 0.0))
+                a01, a11 = np.where(d, co["a01p"], co["a01n"]), np.where(d, co["a11p"], co["a11n"])
                 b0, b1 = np.where(d, co["b0p"], co["b0n"]), np.where(d, co["b1p"], co["b1n"])
+                if not rigid:
+                    a00, a10 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a10p"], co["a10n"])
+            if not (sym and const_f):
+                b0f, b1f = b0 * f, b1 * f
+            # x + a01 v + b0 f and a11 v + b1 f, added in that order (IEEE addition commutes)
             if rigid:  # a00 = 1 and a10 = 0 exactly: the same numbers without four operations
-                xf = x + a01 * v + b0 * f
-                vf = a11 * v + b1 * f
+                xf = a01 * v
+                xf += x
             else:
-                xf = a00 * x + a01 * v + b0 * f
-                vf = a10 * x + a11 * v + b1 * f
+                xf = a00 * x
+                xf += a01 * v
+            xf += b0f
+            if rigid:
+                vf = a11 * v
+            else:
+                vf = a10 * x
+                vf += a11 * v
+            vf += b1f
             if coul:
                 positive = vf > 0.0
-                lim_c = np.where(positive, co["fcp"], co["fcn"])
+                # Moreau: the impulse opposes vf, limited to fc h; a body it can stop sticks (vf = 0
+                # sticks too: -0/b1 adds nothing). Sliding, the impulse is -fc (moving up) or +fc.
                 if self._stribeck:
+                    lim_c = np.where(positive, co["fcp"], co["fcn"])
                     r = v / co["stv"]
                     lim_c = lim_c + co["exc"] * np.exp(-r * r)
-                # Moreau: the impulse opposes vf, limited to fc h; a body it can stop sticks (vf = 0
-                # sticks too: -0/b1 adds nothing)
-                lam = np.where(np.abs(vf) <= b1 * lim_c, -vf / b1, np.copysign(lim_c, -vf))
-                xf = xf + b0 * lam
-                vf = vf + b1 * lam
-                vf = np.where(np.abs(vf) < 1e-15, 0.0, vf)
+                    held = b1 * lim_c
+                    nvf = -vf
+                    slide = np.copysign(lim_c, nvf)
+                else:
+                    held = np.where(positive, co["g1p"], co["g1n"]) if sym else b1 * np.where(
+                        positive, co["fcp"], co["fcn"])
+                    nvf = -vf
+                    # = copysign(fc, -vf) wherever it is taken (vf = 0 always sticks)
+                    slide = np.where(positive, co["nfcp"], co["fcn"])
+                lam = np.where(np.abs(vf) <= held, np.divide(nvf, b1, out=nvf), slide)
+                xf += b0 * lam
+                vf += b1 * lam
+                vf[np.abs(vf) < 1e-15] = 0.0
             x, v = xf, vf
         return x, v
 
@@ -498,6 +533,8 @@ class BatchSim:
         out = np.empty((W, C, L))
         out_v = np.empty((W, C, L)) if with_velocity else None
         par = self._params_two(np.tile(np.arange(C), W), np.repeat(np.arange(W), C), win)
+        if self._fixed2:  # every (window, candidate): the candidates' matrices broadcast over the windows
+            par["grid"] = self._table2[:, np.arange(C) * 8 + 4].reshape(4, 6, C).copy()
         for j in range(L):
             s = self._cycle_two(win, j, s, par) if self.cycle_ok else self._substeps_two(win, j, s, par)
             out[:, :, j] = s[2].reshape(W, C)
@@ -533,7 +570,7 @@ class BatchSim:
         new = [np.array(r) for r in new]
         odd = np.flatnonzero(~ok)
         if len(odd):
-            sub = {k: (v[..., odd] if isinstance(v, np.ndarray) else v) for k, v in par.items()}
+            sub = {k: (v[..., odd] if isinstance(v, np.ndarray) else v) for k, v in par.items() if k != "grid"}
             res = self._substeps_two(win, j, [a[odd] for a in s], sub)
             for r in range(4):
                 new[r][odd] = res[r]
@@ -542,15 +579,18 @@ class BatchSim:
     def _substeps_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j by the plant's substeps for flat elements with parameters ``par``: Plant._step_two operation
         for operation. The state and the substep's two forces are one (6, N) array and each element's
-        [A | B] one (4, 6, N) block gathered from the coefficient-major table: the affine map is one product
-        and one sum over the middle axis, which numpy adds term after term (not pairwise), in the plant's
-        order ``A[r][0] x0 + ... + B[r][1] f1``: the same numbers, bit for bit, in a few calls."""
+        [A | B] one (4, 6, N) block gathered from the coefficient-major table (or, where every element has its
+        candidate's one set of matrices, (4, 6, C) broadcast over the windows): the affine map is one einsum,
+        which adds its terms one after the other over k (n, the contiguous axis, is the inner loop), in the
+        plant's order ``A[r][0] x0 + ... + B[r][1] f1``: the same numbers (tests/test_explain_sim.py compares
+        them with Plant.step), in a few calls and without a (4, 6, N) product in memory."""
         h, dt, H = self.h, self.dt, win.history
         wid, lim_in = par["wid"], par["lim"]
         half, kh = par["half"], par["kh"]
         fcp, fcn, exc, stv = par["fcp"], par["fcn"], par["exc"], par["stv"]
         has_gap = bool(np.any(par["gap"] > 0))
         G = par["G"]
+        grid = par.get("grid")
         table = self._table2
         n_el = len(s[0])
         z = np.empty((6, n_el))  # x0, v0, x1, v1, f0, f1
@@ -604,7 +644,7 @@ class BatchSim:
                 gs = G
             z[4] = f0
             z[5] = f1
-            new = np.multiply(gs, z).sum(axis=1)
+            new = affine_two(gs, z, grid)
             for body in coul:
                 vi = 2 * body + 1
                 vf = new[vi]
@@ -621,6 +661,23 @@ class BatchSim:
                 vb[np.abs(vb) < 1e-15] = 0.0
             z[:4] = new
         return [z[0], z[1], z[2], z[3]]
+
+
+#: elements from which the two-body substep's affine map is one einsum: with very few (one), einsum may
+#: make the six terms its inner loop and add them in another order than the plant's
+EINSUM_MIN = 16
+
+
+def affine_two(g: np.ndarray, z: np.ndarray, grid: np.ndarray | None = None) -> np.ndarray:
+    """Rows r of [A | B], (4, 6, n) per element, applied to z = (x0, v0, x1, v1, f0, f1), (6, n): (4, n), the
+    terms added one after the other as Plant._step_two adds them. ``grid``: the same [A | B] per candidate,
+    (4, 6, C), for n = windows x C elements in window-major order (broadcast; ``g`` then unused)."""
+    n = z.shape[-1]
+    if n < EINSUM_MIN:
+        return np.multiply(g, z).sum(axis=1)
+    if grid is not None:
+        return np.einsum("rkc,kwc->rwc", grid, z.reshape(6, -1, grid.shape[-1])).reshape(4, n)
+    return np.einsum("rkn,kn->rn", g, z)
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:

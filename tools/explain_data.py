@@ -173,7 +173,7 @@ def estimate_velocity(pos: np.ndarray, dt: float) -> np.ndarray:
     Why this one: 15 ms is short against a jerk-limited profile's acceleration phases (the cubic
     follows them without lag) and long enough to average 76 nm counts to ~0.1 mm/s noise.
     """
-    from scipy.signal import savgol_filter
+    from drivectl.tools.savgol import savgol_filter  # not scipy.signal's: its import costs ~1 s
 
     n = min(SG_LENGTH, len(pos) - (1 - len(pos) % 2))
     if n < 5:
@@ -183,7 +183,7 @@ def estimate_velocity(pos: np.ndarray, dt: float) -> np.ndarray:
 
 def _local_misfit(pos: np.ndarray) -> np.ndarray:
     """RMS misfit of the cubic through the SG_LENGTH positions centred on each row (nan at the edges)."""
-    from scipy.signal import savgol_filter
+    from drivectl.tools.savgol import savgol_filter  # not scipy.signal's: its import costs ~1 s
 
     n = len(pos)
     half = SG_LENGTH // 2
@@ -347,7 +347,7 @@ def noise_floor(prep: Prepared, rough: np.ndarray) -> float:
 @lru_cache(maxsize=1)
 def _sg_slope_gain() -> float:
     """Noise gain of the cubic Savitzky-Golay slope (per sample), sqrt(sum h^2)."""
-    from scipy.signal import savgol_coeffs
+    from drivectl.tools.savgol import savgol_coeffs
 
     h = savgol_coeffs(SG_LENGTH, SG_ORDER, deriv=1)
     return float(np.sqrt(np.sum(h * h)))

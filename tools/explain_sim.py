@@ -688,6 +688,11 @@ def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) ->
     return np.sqrt(np.mean(err * err, axis=(0, -1)))
 
 
+#: longest stretch of the trace between two states of :func:`internal_state`'s recursion (longer gaps between
+#: the rows asked for are split): its (points x stretch) input matrix stays about the size of the trace
+STATE_STRETCH = 256
+
+
 def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.ndarray,
                    rows: np.ndarray, table_vel: np.ndarray | None = None,
                    times: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -701,14 +706,33 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
     ZOH discretisation, from rest at row 0) reconstructs the mode's state at every window start:
     a lightly damped mode rings on from one window into the next, which a start "at rest relative
     to each other" would miss. ``applied[j]`` and ``table_acc[j]`` act during step j.
-    """
-    from scipy.signal import lfilter, ss2tf
 
+    Computed only where it is needed: from one row asked for to the next (at most STATE_STRETCH
+    steps), s(p) = A^d s(p - d) + sum_q A^q B u(p - 1 - q), the sums of all stretches one product
+    with the powers A^q B, the A^d steps a short loop over the rows (all plants at once). numpy and
+    scipy.linalg only: scipy.signal's lfilter would cost its import (~1 s, most of a short trace's
+    explain) and filters the whole trace.
+    """
     from drivectl.plant_emulator.models import _discretise
 
     n = len(applied)
-    out_d = np.zeros((len(rows), len(plants)))
-    out_v = np.zeros((len(rows), len(plants)))
+    C = len(plants)
+    want = np.clip(np.asarray(rows, dtype=int), 0, n - 1)
+    # the points of the recursion: every row asked for, and enough between them that no stretch is longer
+    # than STATE_STRETCH; the state at point 0 is the rest the filter starts from
+    marks = np.unique(np.concatenate(([0], want)))
+    fill = [np.arange(a + STATE_STRETCH, b, STATE_STRETCH) for a, b in zip(marks[:-1], marks[1:], strict=True)
+            if b - a > STATE_STRETCH]
+    pts = np.unique(np.concatenate([marks, *fill])) if fill else marks
+    span = np.diff(pts)  # steps from each point to the next
+    M = int(span.max()) if len(span) else 1
+    q = np.arange(M)
+    src = pts[1:, None] - 1 - q[None, :]  # inputs u(p - 1 - q) of each stretch, newest first
+    valid = q[None, :] < span[:, None]
+    src = np.where(valid, src, 0)
+    a_d = np.empty((C, 2, 2))
+    b_d = np.empty((C, 2))
+    u = np.empty((C, n))
     for c, p in enumerate(plants):
         d = p.design
         m0 = d.bodies[0].mass
@@ -717,16 +741,24 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
         ac = np.array([[0.0, 1.0], [-k / m0, -(cc + b0) / m0]])
         bc = np.array([[0.0], [1.0]])
         A, B = (np.asarray(x) for x in _discretise(ac, bc, p.dt))
+        a_d[c], b_d[c] = A, B[:, 0]
         f = np.asarray(applied, dtype=float)
         if b0 and table_vel is not None:
             f = f - b0 * table_vel
         if d.disturbance_amplitude and times is not None:
             f = f + d.disturbance_amplitude * np.sin(2 * math.pi * d.disturbance_frequency * (times + 0.5 * p.dt))
-        u = f / m0 - table_acc
-        for which, target in ((0, out_d), (1, out_v)):
-            cm = np.zeros((1, 2))
-            cm[0, which] = 1.0
-            num, den = ss2tf(A, B, cm, np.zeros((1, 1)))
-            y = lfilter(num[0], den, u)  # y[j] = state after inputs u[0..j-1]
-            target[:, c] = y[np.clip(rows, 0, n - 1)]
-    return out_d, out_v
+        u[c] = f / m0 - table_acc
+    # A^q (q = 0..M) and A^q B (q < M), all plants at once
+    powers = np.empty((M + 1, C, 2, 2))
+    powers[0] = np.eye(2)
+    for i in range(1, M + 1):
+        powers[i] = a_d @ powers[i - 1]
+    hq = np.einsum("qcij,cj->cqi", powers[:M], b_d)  # (C, M, 2)
+    forced = np.einsum("ckq,cqi->cki", np.where(valid[None], u[:, src], 0.0), hq)  # (C, K, 2)
+    states = np.zeros((len(pts), C, 2))
+    s = np.zeros((C, 2))
+    for i, d_steps in enumerate(span):
+        s = np.einsum("cij,cj->ci", powers[d_steps], s) + forced[:, i]
+        states[i + 1] = s
+    at = states[np.searchsorted(pts, want)]  # (R, C, 2)
+    return np.ascontiguousarray(at[..., 0]), np.ascontiguousarray(at[..., 1])

@@ -729,10 +729,10 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
     q = np.arange(M)
     src = pts[1:, None] - 1 - q[None, :]  # inputs u(p - 1 - q) of each stretch, newest first
     valid = q[None, :] < span[:, None]
-    src = np.where(valid, src, 0)
+    src = np.where(valid, src, n)  # column n of the padded inputs is 0
     a_d = np.empty((C, 2, 2))
     b_d = np.empty((C, 2))
-    u = np.empty((C, n))
+    u = np.zeros((C, n + 1))
     for c, p in enumerate(plants):
         d = p.design
         m0 = d.bodies[0].mass
@@ -747,14 +747,14 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
             f = f - b0 * table_vel
         if d.disturbance_amplitude and times is not None:
             f = f + d.disturbance_amplitude * np.sin(2 * math.pi * d.disturbance_frequency * (times + 0.5 * p.dt))
-        u[c] = f / m0 - table_acc
+        u[c, :n] = f / m0 - table_acc
     # A^q (q = 0..M) and A^q B (q < M), all plants at once
     powers = np.empty((M + 1, C, 2, 2))
     powers[0] = np.eye(2)
     for i in range(1, M + 1):
         powers[i] = a_d @ powers[i - 1]
     hq = np.einsum("qcij,cj->cqi", powers[:M], b_d)  # (C, M, 2)
-    forced = np.einsum("ckq,cqi->cki", np.where(valid[None], u[:, src], 0.0), hq)  # (C, K, 2)
+    forced = np.matmul(u[:, src], hq)  # (C, K, 2)
     states = np.zeros((len(pts), C, 2))
     s = np.zeros((C, 2))
     for i, d_steps in enumerate(span):

@@ -44,7 +44,6 @@ from explain_traces import (  # noqa: E402
 
 from drivectl.plant_emulator.models import load_plant  # noqa: E402
 from drivectl.tools.explain import PARAM_NAMES, explain  # noqa: E402
-from drivectl.tools.trace import Trace  # noqa: E402
 
 #: issue 17's targets; the single-effect ones are the figures before it (no worse than those)
 TARGETS = {"named_right": 0.90, "false_alarms": 0, "param_within_25pct": 0.90, "median_gap_shrink": 0.80,
@@ -137,8 +136,7 @@ def score_real(verbose: bool, workers: int | None) -> dict[str, Any]:
         return {"available": False}
     out: dict[str, Any] = {"available": True, "cases": {}}
     for case in emps_cases():
-        trace = Trace.read(d / case.file)
-        trace.meta.update(case.meta)
+        trace = case.trace(d)
         t0 = time.perf_counter()
         res = explain(trace, case.plant, source=case.file, workers=workers)
         sec = time.perf_counter() - t0

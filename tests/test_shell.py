@@ -173,3 +173,17 @@ def test_the_status_line_shows_the_chosen_channels(tmp_path):
         StatusLine(m, buf, ("position", "following_error")).refresh()
     line = buf.getvalue().split("\x1b[2K")[-1]
     assert line.startswith("x: position 2 mm following_error ")
+
+
+def test_a_capture_pending_at_the_end_fills_or_is_named(monkeypatch, capsys, tmp_path):
+    # triggered by the move but 300 ms of post-trigger samples still to come when the script ends: filled
+    cap = tmp_path / "late.csv"
+    never = tmp_path / "never.csv"
+    rc, out, _ = shell(monkeypatch, capsys, f"enable x\ncapture x trigger=move pre=10ms post=300ms out={cap}\n"
+                       f"capture x trigger=position>1 out={never}\nwait 20ms\nmove x 1mm\n", "--out", str(tmp_path))
+    assert f"wrote {cap}, {cap.with_suffix('.png')}" in out
+    assert len(Trace.read(cap)) == 10 + 1 + 300
+    # a level never crossed: said, not silently dropped, and the script's exit code says it failed
+    assert out[-1] == (f"error: capture on axis x: not triggered when the session ended; nothing written "
+                       f"to {never}")
+    assert rc == 1 and not never.exists()

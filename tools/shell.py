@@ -403,6 +403,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_exit(self, arg: str) -> bool:
+        self._finish_captures()
         return True
 
     do_quit = do_exit
@@ -412,6 +413,26 @@ class Shell(cmd.Cmd):
     def _next_path(self, stem: str) -> Path:
         self._seq += 1
         return self.out / f"{stem}-{time.strftime('%Y%m%d-%H%M%S')}-{self._seq:02d}.csv"
+
+    def _finish_captures(self) -> None:
+        """At the end of the session: a triggered capture gets its post-trigger time to fill (it is
+        written then); one still armed or unfilled is named, so that a script never ends silently on
+        a capture it asked for."""
+        from drivectl.controllers.capture import CaptureError
+
+        for cap, _out in self.captures:
+            if cap.state == "triggered":
+                try:
+                    cap.wait(cap.post * cap.dt + 1.0)
+                except (TimeoutError, CaptureError):
+                    pass  # named below
+        self._collect_captures()
+        for cap, out in self.captures:
+            what = "filled" if cap.state == "triggered" else "triggered"
+            self.failures += 1
+            self.say(f"error: capture on axis {cap.axis}: not {what} when the session ended; nothing written "
+                     f"to {out}")
+        self.captures = []
 
     def _collect_captures(self) -> None:
         """Write every capture that completed since the last command."""

@@ -12,7 +12,8 @@ from drivectl.tools.savgol import savgol_coeffs, savgol_filter
 
 @pytest.mark.parametrize("n", [15, 16, 400])
 @pytest.mark.parametrize("window,order,deriv,delta", [(15, 3, 0, 1.0), (15, 3, 1, 0.001), (5, 2, 1, 0.5),
-                                                      (15, 3, 2, 0.001), (7, 1, 2, 1.0)])
+                                                      (15, 3, 2, 0.001), (7, 1, 2, 1.0),
+                                                      (15, 5, 1, 0.001), (15, 5, 0, 1.0)])
 def test_same_numbers_as_scipy(n, window, order, deriv, delta):
     x = np.cumsum(np.random.default_rng(n).normal(size=n)) * 1e-6
     want = scipy_filter(x, window, order, deriv=deriv, delta=delta, mode="interp")

@@ -166,8 +166,8 @@ COST_ORDER = ("resonance", "backlash", "stribeck", "coulomb", "viscous+-", "satu
 
 def _warm_imports(plot: bool) -> None:
     """What the main process will import later anyway (the plot), imported while the workers fit: the main
-    process would only wait for them. (Not scipy.signal: nothing on explain's path needs it unless the trace
-    lacks its velocity column, and it costs ~1 s.)"""
+    process would only wait for them. (Not scipy.signal: nothing on explain's path needs it, and it costs
+    ~1 s; tools/savgol.py, explain_sim.internal_state.)"""
     if plot:
         import matplotlib
 

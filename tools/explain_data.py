@@ -182,7 +182,7 @@ def estimate_velocity(pos: np.ndarray, dt: float) -> np.ndarray:
     (0.27 per count and sample: ~6 um/s at 76 nm counts, 0.5 um over a window), and the span is the
     same, so the start rows and the kink test stay where they were.
     """
-    from scipy.signal import savgol_filter
+    from drivectl.tools.savgol import savgol_filter  # not scipy.signal's: its import costs ~1 s
 
     n = min(SG_LENGTH, len(pos) - (1 - len(pos) % 2))
     if n < 5:
@@ -193,7 +193,7 @@ def estimate_velocity(pos: np.ndarray, dt: float) -> np.ndarray:
 def _local_misfit(pos: np.ndarray) -> np.ndarray:
     """RMS misfit of the local polynomial (SG_ORDER) through the SG_LENGTH positions centred on each
     row (nan at the edges)."""
-    from scipy.signal import savgol_filter
+    from drivectl.tools.savgol import savgol_filter  # not scipy.signal's: its import costs ~1 s
 
     n = len(pos)
     half = SG_LENGTH // 2
@@ -357,7 +357,7 @@ def noise_floor(prep: Prepared, rough: np.ndarray) -> float:
 @lru_cache(maxsize=1)
 def _sg_slope_gain() -> float:
     """Noise gain of the Savitzky-Golay slope (per sample), sqrt(sum h^2)."""
-    from scipy.signal import savgol_coeffs
+    from drivectl.tools.savgol import savgol_coeffs
 
     h = savgol_coeffs(SG_LENGTH, SG_ORDER, deriv=1)
     return float(np.sqrt(np.sum(h * h)))

@@ -258,9 +258,8 @@ class BatchSim:
     def _run_one(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
         W, C, L = len(win.start), len(self.plants), win.length
         x, v = self._initial(win)
-        # step-major while stepping (each step's (W, C) written contiguously), (W, C, L) at the end
-        out = np.empty((L, W, C))
-        out_v = np.empty((L, W, C))
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L))
         if not self.cycle_ok:
             # substeps for every window and candidate (flat arrays; the coefficients gathered once)
             cidx = np.tile(np.arange(C), W)
@@ -269,14 +268,14 @@ class BatchSim:
             xf, vf = x.reshape(-1), v.reshape(-1)
             for j in range(L):
                 xf, vf = self._substeps_one(win, j, xf, vf, widx, co)
-                out[j] = xf.reshape(W, C)
-                out_v[j] = vf.reshape(W, C)
-            return _window_major(out), _window_major(out_v)
+                out[:, :, j] = xf.reshape(W, C)
+                out_v[:, :, j] = vf.reshape(W, C)
+            return out, out_v
         for j in range(L):
             x, v = self._cycle_one(win, j, x, v)
-            out[j] = x
-            out_v[j] = v
-        return _window_major(out), _window_major(out_v)
+            out[:, :, j] = x
+            out_v[:, :, j] = v
+        return out, out_v
 
     def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
         """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
@@ -531,17 +530,17 @@ class BatchSim:
             init[0] = init[2] + internal[0]
             init[1] = init[3] + internal[1]
         s = [np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init]
-        out = np.empty((L, W, C))  # step-major while stepping, as in _run_one
-        out_v = np.empty((L, W, C)) if with_velocity else None
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L)) if with_velocity else None
         par = self._params_two(np.tile(np.arange(C), W), np.repeat(np.arange(W), C), win)
         if self._fixed2:  # every (window, candidate): the candidates' matrices broadcast over the windows
             par["grid"] = self._table2[:, np.arange(C) * 8 + 4].reshape(4, 6, C).copy()
         for j in range(L):
             s = self._cycle_two(win, j, s, par) if self.cycle_ok else self._substeps_two(win, j, s, par)
-            out[j] = s[2].reshape(W, C)
+            out[:, :, j] = s[2].reshape(W, C)
             if out_v is not None:
-                out_v[j] = s[3].reshape(W, C)
-        return (_window_major(out), _window_major(out_v)) if out_v is not None else _window_major(out)
+                out_v[:, :, j] = s[3].reshape(W, C)
+        return (out, out_v) if with_velocity else out
 
     def _cycle_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j in closed form for the elements whose table keeps moving one way all cycle (its Coulomb
@@ -679,11 +678,6 @@ def affine_two(g: np.ndarray, z: np.ndarray, grid: np.ndarray | None = None) -> 
     if grid is not None:
         return np.einsum("rkc,kwc->rwc", grid, z.reshape(6, -1, grid.shape[-1])).reshape(4, n)
     return np.einsum("rkn,kn->rn", g, z)
-
-
-def _window_major(steps: np.ndarray) -> np.ndarray:
-    """(L, W, C) as a C-contiguous (W, C, L): what callers index and reduce (their sums in the same order)."""
-    return np.ascontiguousarray(steps.transpose(1, 2, 0))
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:

@@ -222,7 +222,7 @@ class BatchSim:
         # takes moving up (with direction-dependent B these depend on the direction too: left to the step)
         t["nfcp"], t["g1p"], t["g1n"] = -t["fcp"], t["b1p"] * t["fcp"], t["b1p"] * t["fcn"]
         t["exc"], t["stv"] = self.st_exc[:, 0], self.st_vel[:, 0]
-        t["off"], t["lim"] = self.offset, self.limit
+        t["off"], t["lim"], t["nlim"] = self.offset, self.limit, -self.limit
         t["pa"], t["pk"], t["pp"] = self.per_amp, self.per_k, self.per_phase
         t["da"], t["dw"] = self.dist_a, self.dist_w
         t["dc"], t["df"] = self.delay_cycles, self.delay_frac
@@ -279,7 +279,8 @@ class BatchSim:
 
     def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
         """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
-        keys = ["lim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p", "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
+        keys = ["lim", "nlim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p",
+                "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
         keys += ["fcp", "fcn", "nfcp", "g1p", "g1n"] if self.coulomb[0] else []
         keys += ["exc", "stv"] if self._stribeck else []
         keys += ["off"] if self.has_offset or self.has_periodic else []
@@ -303,7 +304,7 @@ class BatchSim:
         t = self._t1
         n = self.substeps
         H = win.history
-        f = np.clip(win.applied[:, H + j][:, None], -t["lim"][None, :], t["lim"][None, :])
+        f = np.minimum(np.maximum(win.applied[:, H + j][:, None], t["nlim"][None, :]), t["lim"][None, :])
         if self.has_offset:
             f = f + t["off"][None, :]
         pos = v > 0.0
@@ -386,7 +387,7 @@ class BatchSim:
             cur = win.applied[w, H + j - dc]
             prev = win.applied[w, H + j - dc - 1]
         else:
-            f_in = np.clip(win.applied[w, H + j], -lim, lim)
+            f_in = np.minimum(np.maximum(win.applied[w, H + j], co["nlim"]), lim)  # np.clip's numbers, cheaper
             if self.has_offset and const_f:
                 f_in = f_in + co["off"]
         coul = bool(self.coulomb[0])
@@ -496,7 +497,7 @@ class BatchSim:
 
     def _params_two(self, cid: np.ndarray, wid: np.ndarray, win: Windows) -> dict[str, Any]:
         """Per-element parameters of the two-body substeps for flat elements of candidates ``cid``."""
-        p: dict[str, Any] = {"cid": cid, "wid": wid, "base": cid * 8, "lim": self.limit[cid],
+        p: dict[str, Any] = {"cid": cid, "wid": wid, "base": cid * 8, "lim": self.limit[cid], "nlim": -self.limit[cid],
                              "gap": self.gap[cid], "kh": self.stiff[cid] * (0.5 * self.gap[cid]),
                              "off": self.offset[cid] if (self.has_offset or self.has_periodic) else np.zeros(len(cid)),
                              "fcp": self.fc_pos[cid].T, "fcn": self.fc_neg[cid].T,
@@ -546,7 +547,7 @@ class BatchSim:
         """Step j in closed form for the elements whose table keeps moving one way all cycle (its Coulomb
         friction a constant force then; body 0 carries none and its direction changes no matrix), checked
         on every substep's table velocity; by substeps for the rest (a stop, a start, a reversal)."""
-        f0 = np.clip(win.applied[par["wid"], win.history + j], -par["lim"], par["lim"])
+        f0 = np.minimum(np.maximum(win.applied[par["wid"], win.history + j], par["nlim"]), par["lim"])
         f1 = par["off"]
         x0, v0, x1, v1 = s
         pos = v1 > 0.0
@@ -599,7 +600,7 @@ class BatchSim:
             cur = win.applied[wid, H + j - par["dc"]]
             prev = win.applied[wid, H + j - par["dc"] - 1]
         else:
-            f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
+            f_in = np.minimum(np.maximum(win.applied[wid, H + j], par["nlim"]), lim_in)
         if G is None:
             # matrix index: engaged 4, body 0 moving - 2, table moving - 1 (see _two_body_tables)
             base = par["base"]

@@ -323,14 +323,29 @@ class PlantState:
         return PlantState(self.t, list(self.s), list(self.history))
 
 
+#: discretisations already computed, by (Ac, Bc, h): explain's fits build the same candidate plants again
+#: and again (coarse and fine substeps, refits each round): ~85 % of its expm calls were repeats
+_ZOH_CACHE: dict[tuple[bytes, bytes, tuple[int, int], float], tuple[list[list[float]], list[list[float]]]] = {}
+_ZOH_CACHE_MAX = 4096
+
+
 def _discretise(ac: np.ndarray, bc: np.ndarray, h: float) -> tuple[list[list[float]], list[list[float]]]:
     """Exact zero-order-hold discretisation: one expm of the augmented matrix [[Ac, Bc], [0, 0]] h."""
-    n, m = bc.shape
-    aug = np.zeros((n + m, n + m))
-    aug[:n, :n] = ac
-    aug[:n, n:] = bc
-    e = expm(aug * h)
-    return e[:n, :n].tolist(), e[:n, n:].tolist()
+    ac = np.ascontiguousarray(ac, dtype=float)
+    bc = np.ascontiguousarray(bc, dtype=float)
+    key = (ac.tobytes(), bc.tobytes(), bc.shape, float(h))
+    hit = _ZOH_CACHE.get(key)
+    if hit is None:
+        n, m = bc.shape
+        aug = np.zeros((n + m, n + m))
+        aug[:n, :n] = ac
+        aug[:n, n:] = bc
+        e = expm(aug * h)
+        hit = (e[:n, :n].tolist(), e[:n, n:].tolist())
+        if len(_ZOH_CACHE) >= _ZOH_CACHE_MAX:
+            _ZOH_CACHE.clear()
+        _ZOH_CACHE[key] = hit
+    return [list(r) for r in hit[0]], [list(r) for r in hit[1]]  # copies: a caller may change its own
 
 
 class Plant:

@@ -172,3 +172,85 @@ def test_workers_follow_the_free_cores(monkeypatch, load, workers):
 def test_two_body_whole_cycles_equal_the_substeps(data, specs, monkeypatch):
     v_slow = _fast_and_slow(specs, data, monkeypatch)
     assert np.mean(v_slow == 0.0) > 0.01  # the table sticks somewhere: the substeps ran too
+
+
+# --- the substep kernels against Plant.step where no whole cycle is taken (issue 17 point 6) ---
+
+
+@pytest.mark.parametrize("spec,substeps", [
+    (BASE.with_effect("periodic", amplitude=30.0, period=0.004, phase=0.5), None),  # a force that varies per substep
+    (BASE.with_effect("stribeck", excess_force=25.0, velocity=0.002), None),
+    (BASE.with_effect("delay", delay=0.0017), None),  # the delay's weights per substep
+    (BASE.with_effect("viscous", scale=0.6, scale_neg=1.5).with_effect("offset", force=8.0), 2),  # coarse scans
+    (SYMMETRIC.with_effect("offset", force=3.0), 2),
+    (BASE.with_effect("spring", stiffness=2000.0), 2),
+    (load_plant("two-mass").with_effect("periodic", amplitude=0.05, period=0.01, phase=1.0), None),
+    (load_plant("two-mass").with_effect("delay", delay=0.0023), None),
+    (BASE.with_effect("viscous", scale=0.6, scale_neg=1.5).with_effect("backlash", width=15e-6), 5),
+    (BASE.with_effect("viscous", scale=0.6, scale_neg=1.5).with_effect("resonance", frequency=50.0, damping=0.05), 2),
+], ids=["periodic", "stribeck", "delay", "asymmetric coarse", "symmetric coarse", "spring coarse", "two-mass periodic",
+        "two-mass delay", "asymmetric backlash", "asymmetric resonance coarse"])
+def test_substeps_equal_plant_step(data, spec, substeps):
+    """The per-substep kernels (_substeps_one, _substeps_two: invariants computed once per cycle, the two-body
+    map as one einsum) equal the plant's own step at the same substep count."""
+    pos, vel, effort = data
+    scale = 0.01 if spec.effort_unit == "V" else 1.0
+    win = make_windows(pos, vel, effort * scale, DT, 150, starts=np.array([100, 850, 2050]), history=16)
+    plant = spec.build(DT, substeps)
+    sim = BatchSim([plant])
+    assert not sim.cycle_ok
+    x = sim.run(win)
+    init = sim._initial(win)
+    for w in range(len(win.start)):
+        st = plant.initial_state()
+        st.s = [float(a[w, 0]) for a in init]
+        st.t = float(win.t0[w])
+        if plant.history_len:  # the efforts that acted before the window, oldest first
+            st.history = [float(e) for e in win.applied[w, win.history - plant.history_len:win.history]]
+        xs = []
+        for j in range(win.length):
+            plant.step(st, float(win.applied[w, win.history + j]))
+            xs.append(plant.position(st))
+        assert np.max(np.abs(np.array(xs) - x[w, 0])) < 1e-12
+
+
+@pytest.mark.parametrize("n", [1, 2, 15, 16, 17, 300])
+def test_two_body_map_adds_in_the_plants_order(n):
+    """affine_two is bit for bit A[r][0] x0 + A[r][1] v0 + ... + B[r][1] f1, left to right, as Plant._step_two
+    adds it (einsum from EINSUM_MIN elements on; with one element it would reorder the terms)."""
+    rng = np.random.default_rng(n)
+    C = 3 if n % 3 == 0 else 1
+    g_c = rng.normal(size=(4, 6, C)) * 10.0 ** rng.uniform(-8, 3, size=(4, 6, C))
+    z = rng.normal(size=(6, n)) * 10.0 ** rng.uniform(-8, 3, size=(6, n))
+    g = np.tile(g_c, (1, 1, n // C))
+    want = np.array([g[r, 0] * z[0] + g[r, 1] * z[1] + g[r, 2] * z[2] + g[r, 3] * z[3] + g[r, 4] * z[4]
+                     + g[r, 5] * z[5] for r in range(4)])
+    assert np.array_equal(explain_sim.affine_two(g, z), want)
+    assert np.array_equal(explain_sim.affine_two(g, z, g_c), want)
+
+
+def test_internal_state_equals_the_state_space_recursion(data):
+    """The mode's state at the window starts (stretches between them, powers of A) equals stepping
+    s <- A s + B u sample by sample, here with starts far apart (stretches split at STATE_STRETCH)."""
+    from drivectl.plant_emulator.models import _discretise
+
+    pos, vel, effort = data
+    n = len(pos)
+    acc = np.gradient(vel, DT)
+    rows = np.array([0, 5, 160, 1200, 1201, 2999, 4000])  # a row past the end reads the last
+    specs = [BASE.with_effect("resonance", frequency=f, damping=z) for f, z in ((9.0, 0.02), (120.0, 0.3))]
+    plants = [s.build(DT) for s in specs]
+    d, v = explain_sim.internal_state(plants, effort, acc, rows)
+    for c, p in enumerate(plants):
+        m0 = p.design.bodies[0].mass
+        k, cc = p.design.coupling.stiffness, p.design.coupling.damping
+        A, B = (np.asarray(x) for x in _discretise(np.array([[0.0, 1.0], [-k / m0, -cc / m0]]),
+                                                    np.array([[0.0], [1.0]]), DT))
+        s = np.zeros(2)
+        traj = np.empty((n, 2))
+        for j in range(n):
+            traj[j] = s
+            s = A @ s + B[:, 0] * (effort[j] / m0 - acc[j])
+        want = traj[np.clip(rows, 0, n - 1)]
+        for got, col in ((d[:, c], 0), (v[:, c], 1)):
+            assert np.max(np.abs(got - want[:, col])) <= 1e-12 * np.max(np.abs(want[:, col]))

@@ -127,12 +127,10 @@ class ExplainResult:
 @contextmanager
 def _one_blas_thread() -> Any:
     """The fits are many small matrix operations: BLAS threads only contend (a 10 s trace took 13-61 s
-    with default threading on a loaded 2-core machine, 4 s CPU with one thread)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - a declared dependency
-        yield
-        return
+    with default threading on a loaded 2-core machine, 4 s CPU with one thread). threadpoolctl is a
+    declared dependency and imported plainly: a silent fallback once hid a 4x slowdown."""
+    from threadpoolctl import threadpool_limits
+
     with threadpool_limits(limits=1):
         yield
 
@@ -162,12 +160,9 @@ def choose_workers() -> int:
 
 
 def _worker_init() -> None:
-    try:
-        from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_limits
 
-        threadpool_limits(limits=1)
-    except ImportError:  # pragma: no cover
-        pass
+    threadpool_limits(limits=1)
 
 
 #: the expensive fitters first, so that a pool ends together
@@ -175,10 +170,9 @@ COST_ORDER = ("resonance", "backlash", "stribeck", "coulomb", "viscous+-", "satu
 
 
 def _warm_imports(plot: bool) -> None:
-    """What the main process will import later anyway (the two-body start state's filter, the plot), imported
-    while the workers fit: the main process would only wait for them."""
-    import scipy.signal  # noqa: F401
-
+    """What the main process will import later anyway (the plot), imported while the workers fit: the main
+    process would only wait for them. (Not scipy.signal: nothing on explain's path needs it, and it costs
+    ~1 s; tools/savgol.py, explain_sim.internal_state.)"""
     if plot:
         import matplotlib
 

@@ -218,6 +218,9 @@ class BatchSim:
             t["a10" + tag], t["a11" + tag] = A[:, k, 1, 0], A[:, k, 1, 1]
             t["b0" + tag], t["b1" + tag] = B[:, k, 0, 0], B[:, k, 1, 0]
         t["fcp"], t["fcn"] = self.fc_pos[:, 0], self.fc_neg[:, 0]
+        # for the substeps' Moreau step: the impulse that holds a body, b1 fc, and the one a sliding body
+        # takes moving up (with direction-dependent B these depend on the direction too: left to the step)
+        t["nfcp"], t["g1p"], t["g1n"] = -t["fcp"], t["b1p"] * t["fcp"], t["b1p"] * t["fcn"]
         t["exc"], t["stv"] = self.st_exc[:, 0], self.st_vel[:, 0]
         t["off"], t["lim"] = self.offset, self.limit
         t["pa"], t["pk"], t["pp"] = self.per_amp, self.per_k, self.per_phase
@@ -255,8 +258,9 @@ class BatchSim:
     def _run_one(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
         W, C, L = len(win.start), len(self.plants), win.length
         x, v = self._initial(win)
-        out = np.empty((W, C, L))
-        out_v = np.empty((W, C, L))
+        # step-major while stepping (each step's (W, C) written contiguously), (W, C, L) at the end
+        out = np.empty((L, W, C))
+        out_v = np.empty((L, W, C))
         if not self.cycle_ok:
             # substeps for every window and candidate (flat arrays; the coefficients gathered once)
             cidx = np.tile(np.arange(C), W)
@@ -265,19 +269,19 @@ class BatchSim:
             xf, vf = x.reshape(-1), v.reshape(-1)
             for j in range(L):
                 xf, vf = self._substeps_one(win, j, xf, vf, widx, co)
-                out[:, :, j] = xf.reshape(W, C)
-                out_v[:, :, j] = vf.reshape(W, C)
-            return out, out_v
+                out[j] = xf.reshape(W, C)
+                out_v[j] = vf.reshape(W, C)
+            return _window_major(out), _window_major(out_v)
         for j in range(L):
             x, v = self._cycle_one(win, j, x, v)
-            out[:, :, j] = x
-            out_v[:, :, j] = v
-        return out, out_v
+            out[j] = x
+            out_v[j] = v
+        return _window_major(out), _window_major(out_v)
 
     def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
         """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
         keys = ["lim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p", "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
-        keys += ["fcp", "fcn"] if self.coulomb[0] else []
+        keys += ["fcp", "fcn", "nfcp", "g1p", "g1n"] if self.coulomb[0] else []
         keys += ["exc", "stv"] if self._stribeck else []
         keys += ["off"] if self.has_offset or self.has_periodic else []
         keys += ["pa", "pk", "pp"] if self.has_periodic else []
@@ -371,67 +375,100 @@ class BatchSim:
     def _substeps_one(self, win: Windows, j: int, x: np.ndarray, v: np.ndarray, w: np.ndarray,
                       co: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Step j by the plant's substeps for flat elements (windows ``w``, coefficients ``co`` gathered for
-        their candidates): Plant._step_one operation for operation."""
+        their candidates): Plant._step_one operation for operation. What does not change within the cycle
+        (the force without a periodic, time or delayed part, its products with B) is computed once, and
+        products of two coefficients once per gather: the same numbers, fewer passes over the arrays."""
         H = win.history
         h = self.h
         lim = co["lim"]
+        const_f = not (self.delayed or self.has_periodic or self.has_dist)
         if self.delayed:
             dc = co["dc"]
             cur = win.applied[w, H + j - dc]
             prev = win.applied[w, H + j - dc - 1]
         else:
             f_in = np.clip(win.applied[w, H + j], -lim, lim)
+            if self.has_offset and const_f:
+                f_in = f_in + co["off"]
         coul = bool(self.coulomb[0])
         forces = self.has_offset or self.has_periodic
         rigid = self._rigid
+        sym = self._symmetric
+        if sym:
+            a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
+        if const_f:
+            f = f_in
+            fpos = f >= 0.0
+            if sym:
+                b0f, b1f = b0 * f, b1 * f
         for i in range(self.substeps):
-            if self.delayed:
-                w_prev = np.clip((co["df"] * self.dt - i * h) / h, 0.0, 1.0)
-                f = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim, lim)
-            else:
-                f = f_in
-            if forces:
-                f = f + co["off"]
-                if self.has_periodic:
-                    xm = x + 0.5 * h * v
-                    f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
-            if self.has_dist:
-                f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
-            if self._symmetric:  # the same coefficients either way: no direction to look at
-                a00, a01, a10, a11, b0, b1 = co["a00p"], co["a01p"], co["a10p"], co["a11p"], co["b0p"], co["b1p"]
-            else:
-                d = (v > 0.0) | ((v == 0.0) & (f >= 0.0))
-                a00, a01 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a01p"], co["a01n"])
-                a10, a11 = np.where(d, co["a10p"], co["a10n"]), np.where(d, co["a11p"], co["a11n"])
+            if not const_f:
+                if self.delayed:
+                    w_prev = np.clip((co["df"] * self.dt - i * h) / h, 0.0, 1.0)
+                    f = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim, lim)
+                else:
+                    f = f_in
+                if forces:
+                    f = f + co["off"]
+                    if self.has_periodic:
+                        xm = x + 0.5 * h * v
+                        f = f + co["pa"] * np.sin(co["pk"] * xm + co["pp"])
+                if self.has_dist:
+                    f = f + co["da"] * np.sin(co["dw"] * (win.t0[w] + j * self.dt + (i + 0.5) * h))
+            if not sym:
+                d = (v > 0.0) | ((v == 0.0) & (fpos if const_f else f >= 0.0))
+                a01, a11 = np.where(d, co["a01p"], co["a01n"]), np.where(d, co["a11p"], co["a11n"])
                 b0, b1 = np.where(d, co["b0p"], co["b0n"]), np.where(d, co["b1p"], co["b1n"])
+                if not rigid:
+                    a00, a10 = np.where(d, co["a00p"], co["a00n"]), np.where(d, co["a10p"], co["a10n"])
+            if not (sym and const_f):
+                b0f, b1f = b0 * f, b1 * f
+            # x + a01 v + b0 f and a11 v + b1 f, added in that order (IEEE addition commutes)
             if rigid:  # a00 = 1 and a10 = 0 exactly: the same numbers without four operations
-                xf = x + a01 * v + b0 * f
-                vf = a11 * v + b1 * f
+                xf = a01 * v
+                xf += x
             else:
-                xf = a00 * x + a01 * v + b0 * f
-                vf = a10 * x + a11 * v + b1 * f
+                xf = a00 * x
+                xf += a01 * v
+            xf += b0f
+            if rigid:
+                vf = a11 * v
+            else:
+                vf = a10 * x
+                vf += a11 * v
+            vf += b1f
             if coul:
                 positive = vf > 0.0
-                lim_c = np.where(positive, co["fcp"], co["fcn"])
+                # Moreau: the impulse opposes vf, limited to fc h; a body it can stop sticks (vf = 0
+                # sticks too: -0/b1 adds nothing). Sliding, the impulse is -fc (moving up) or +fc.
                 if self._stribeck:
+                    lim_c = np.where(positive, co["fcp"], co["fcn"])
                     r = v / co["stv"]
                     lim_c = lim_c + co["exc"] * np.exp(-r * r)
-                # Moreau: the impulse opposes vf, limited to fc h; a body it can stop sticks (vf = 0
-                # sticks too: -0/b1 adds nothing)
-                lam = np.where(np.abs(vf) <= b1 * lim_c, -vf / b1, np.copysign(lim_c, -vf))
-                xf = xf + b0 * lam
-                vf = vf + b1 * lam
-                vf = np.where(np.abs(vf) < 1e-15, 0.0, vf)
+                    held = b1 * lim_c
+                    nvf = -vf
+                    slide = np.copysign(lim_c, nvf)
+                else:
+                    held = np.where(positive, co["g1p"], co["g1n"]) if sym else b1 * np.where(
+                        positive, co["fcp"], co["fcn"])
+                    nvf = -vf
+                    # = copysign(fc, -vf) wherever it is taken (vf = 0 always sticks)
+                    slide = np.where(positive, co["nfcp"], co["fcn"])
+                lam = np.where(np.abs(vf) <= held, np.divide(nvf, b1, out=nvf), slide)
+                xf += b0 * lam
+                vf += b1 * lam
+                vf[np.abs(vf) < 1e-15] = 0.0
             x, v = xf, vf
         return x, v
 
     def _two_body_tables(self) -> None:
-        """Coefficient-major substep matrices (24 rows: A row by row, then B; columns candidate x 8 states
-        of motion), which states of motion matter, and where a whole cycle can be taken at once its
+        """Coefficient-major substep matrices (24 rows: row r of [A | B] at 6 r .. 6 r + 5; columns candidate x 8
+        states of motion), which states of motion matter, and where a whole cycle can be taken at once its
         propagation per direction of the table (P_i = A^i, Q_i = (I + ... + A^(i-1)) B, i = 1..n)."""
         A, B = self.A, self.B
         C = len(self.plants)
-        self._table2 = np.concatenate((A.reshape(C * 8, 16), B.reshape(C * 8, 8)), axis=1).T.copy()
+        rows = np.concatenate((A.reshape(C * 8, 4, 4), B.reshape(C * 8, 4, 2)), axis=2)
+        self._table2 = rows.reshape(C * 8, 24).T.copy()
 
         def same(a: int, b: int) -> bool:
             return bool(np.array_equal(A[:, a], A[:, b]) and np.array_equal(B[:, a], B[:, b]))
@@ -440,6 +477,8 @@ class BatchSim:
         # index of the matrices: engaged 4, body 0 moving - 2, table moving - 1
         self._screw_free = not has_gap and same(4, 6) and same(5, 7)  # body 0's direction changes nothing
         self._fixed2 = self._screw_free and same(4, 5)  # nor does the table's
+        # whether any direction of motion selects other matrices (no: only the contact state does)
+        self._dirs2 = not all(same(e, e + k) for e in (0, 4) for k in (1, 2, 3))
         self._stribeck2 = [bool(np.any(self.st_exc[:, b] != 0)) for b in (0, 1)]
         n = self.substeps
         self.cycle_ok = (self._screw_free and n >= CYCLE_MIN_SUBSTEPS and not self.coulomb[0]
@@ -470,7 +509,7 @@ class BatchSim:
             p["da"], p["dw"], p["t0"] = self.dist_a[cid], self.dist_w[cid], win.t0[wid]
         if self.delayed:
             p["dc"], p["df"] = self.delay_cycles[cid], self.delay_frac[cid]
-        p["G"] = np.take(self._table2, p["base"] + 4, axis=1) if self._fixed2 else None
+        p["G"] = np.take(self._table2, p["base"] + 4, axis=1).reshape(4, 6, len(cid)) if self._fixed2 else None
         if self.cycle_ok:
             n = self.substeps
             for tag in ("p", "n"):
@@ -492,15 +531,17 @@ class BatchSim:
             init[0] = init[2] + internal[0]
             init[1] = init[3] + internal[1]
         s = [np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init]
-        out = np.empty((W, C, L))
-        out_v = np.empty((W, C, L)) if with_velocity else None
+        out = np.empty((L, W, C))  # step-major while stepping, as in _run_one
+        out_v = np.empty((L, W, C)) if with_velocity else None
         par = self._params_two(np.tile(np.arange(C), W), np.repeat(np.arange(W), C), win)
+        if self._fixed2:  # every (window, candidate): the candidates' matrices broadcast over the windows
+            par["grid"] = self._table2[:, np.arange(C) * 8 + 4].reshape(4, 6, C).copy()
         for j in range(L):
             s = self._cycle_two(win, j, s, par) if self.cycle_ok else self._substeps_two(win, j, s, par)
-            out[:, :, j] = s[2].reshape(W, C)
+            out[j] = s[2].reshape(W, C)
             if out_v is not None:
-                out_v[:, :, j] = s[3].reshape(W, C)
-        return (out, out_v) if with_velocity else out
+                out_v[j] = s[3].reshape(W, C)
+        return (_window_major(out), _window_major(out_v)) if out_v is not None else _window_major(out)
 
     def _cycle_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j in closed form for the elements whose table keeps moving one way all cycle (its Coulomb
@@ -530,7 +571,7 @@ class BatchSim:
         new = [np.array(r) for r in new]
         odd = np.flatnonzero(~ok)
         if len(odd):
-            sub = {k: (v[..., odd] if isinstance(v, np.ndarray) else v) for k, v in par.items()}
+            sub = {k: (v[..., odd] if isinstance(v, np.ndarray) else v) for k, v in par.items() if k != "grid"}
             res = self._substeps_two(win, j, [a[odd] for a in s], sub)
             for r in range(4):
                 new[r][odd] = res[r]
@@ -538,21 +579,36 @@ class BatchSim:
 
     def _substeps_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j by the plant's substeps for flat elements with parameters ``par``: Plant._step_two operation
-        for operation (the matrices of each element gathered in one take from the coefficient-major table)."""
+        for operation. The state and the substep's two forces are one (6, N) array and each element's
+        [A | B] one (4, 6, N) block gathered from the coefficient-major table (or, where every element has its
+        candidate's one set of matrices, (4, 6, C) broadcast over the windows): the affine map is one einsum,
+        which adds its terms one after the other over k (n, the contiguous axis, is the inner loop), in the
+        plant's order ``A[r][0] x0 + ... + B[r][1] f1``: the same numbers (tests/test_explain_sim.py compares
+        them with Plant.step), in a few calls and without a (4, 6, N) product in memory."""
         h, dt, H = self.h, self.dt, win.history
-        wid, base, lim_in = par["wid"], par["base"], par["lim"]
-        gap, half, kh = par["gap"], par["half"], par["kh"]
+        wid, lim_in = par["wid"], par["lim"]
+        half, kh = par["half"], par["kh"]
         fcp, fcn, exc, stv = par["fcp"], par["fcn"], par["exc"], par["stv"]
-        has_gap = bool(np.any(gap > 0))
+        has_gap = bool(np.any(par["gap"] > 0))
         G = par["G"]
+        grid = par.get("grid")
         table = self._table2
-        x0, v0, x1, v1 = s
+        n_el = len(s[0])
+        z = np.empty((6, n_el))  # x0, v0, x1, v1, f0, f1
+        z[:4] = s
         if self.delayed:
             cur = win.applied[wid, H + j - par["dc"]]
             prev = win.applied[wid, H + j - par["dc"] - 1]
         else:
             f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
+        if G is None:
+            # matrix index: engaged 4, body 0 moving - 2, table moving - 1 (see _two_body_tables)
+            base = par["base"]
+            base4, base5 = base + 4, base + 5
+            gapped = par["gap"] > 0
+        coul = [b for b in (1, 0) if self.coulomb[b]]
         for i in range(self.substeps):
+            x0, v0, x1, v1 = z[0], z[1], z[2], z[3]
             if self.delayed:
                 w_prev = np.clip((par["df"] * dt - i * h) / h, 0.0, 1.0)
                 f0 = np.clip(w_prev * prev + (1.0 - w_prev) * cur, -lim_in, lim_in)
@@ -570,41 +626,64 @@ class BatchSim:
                 engaged = True
                 if has_gap:
                     rel = x0 - x1
-                    over = (rel > half) & (gap > 0)
-                    under = (rel < -half) & (gap > 0)
+                    over = (rel > half) & gapped
+                    under = (rel < -half) & gapped
                     push = np.where(over, kh, 0.0) - np.where(under, kh, 0.0)
                     f0 = f0 + push
                     f1 = f1 - push
-                    engaged = over | under | (gap <= 0)
-                d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
-                if self._screw_free:
-                    k = np.where(d1, 4, 5)
+                    engaged = over | under | ~gapped
+                if self._screw_free:  # only the table's direction selects the matrices
+                    col = np.where((v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0)), base4, base5)
+                elif not self._dirs2:  # only the contact state does
+                    col = np.where(engaged, base4, base)
                 else:
+                    d1 = (v1 > 0.0) | ((v1 == 0.0) & (f1 + f0 >= 0.0))
                     d0 = (v0 > 0.0) | ((v0 == 0.0) & (f0 >= 0.0))
-                    k = np.where(engaged, 4, 0) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
-                Gs = np.take(table, base + k, axis=1)
+                    col = np.where(engaged, base4, base) + np.where(d0, 0, 2) + np.where(d1, 0, 1)
+                gs = np.take(table, col, axis=1).reshape(4, 6, n_el)
             else:
-                Gs = G
-            old = (x0, v0, x1, v1)
-            new = [Gs[4 * r] * x0 + Gs[4 * r + 1] * v0 + Gs[4 * r + 2] * x1 + Gs[4 * r + 3] * v1
-                   + Gs[16 + 2 * r] * f0 + Gs[17 + 2 * r] * f1 for r in range(4)]
-            for body in (1, 0):
-                if not self.coulomb[body]:
-                    continue
+                gs = G
+            z[4] = f0
+            z[5] = f1
+            new = affine_two(gs, z, grid)
+            for body in coul:
                 vi = 2 * body + 1
                 vf = new[vi]
-                g = Gs[16 + 2 * vi + body]
-                positive = vf > 0.0
-                lim = np.where(positive, fcp[body], fcn[body])
+                g = gs[vi, 4 + body]
+                lim = np.where(vf > 0.0, fcp[body], fcn[body])
                 if self._stribeck2[body]:
-                    r_ = old[vi] / stv[body]
+                    r_ = z[vi] / stv[body]
                     lim = lim + exc[body] * np.exp(-r_ * r_)
                 # Moreau, as in _substeps_one; the impulse through the body's column of B
-                lam = np.where(np.abs(vf) <= g * lim, -vf / g, np.copysign(lim, -vf))
-                new = [new[r] + Gs[16 + 2 * r + body] * lam for r in range(4)]
-                new[vi] = np.where(np.abs(new[vi]) < 1e-15, 0.0, new[vi])
-            x0, v0, x1, v1 = new
-        return [x0, v0, x1, v1]
+                nvf = -vf
+                lam = np.where(np.abs(vf) <= g * lim, nvf / g, np.copysign(lim, nvf))
+                new += gs[:, 4 + body] * lam
+                vb = new[vi]
+                vb[np.abs(vb) < 1e-15] = 0.0
+            z[:4] = new
+        return [z[0], z[1], z[2], z[3]]
+
+
+#: elements from which the two-body substep's affine map is one einsum: with very few (one), einsum may
+#: make the six terms its inner loop and add them in another order than the plant's
+EINSUM_MIN = 16
+
+
+def affine_two(g: np.ndarray, z: np.ndarray, grid: np.ndarray | None = None) -> np.ndarray:
+    """Rows r of [A | B], (4, 6, n) per element, applied to z = (x0, v0, x1, v1, f0, f1), (6, n): (4, n), the
+    terms added one after the other as Plant._step_two adds them. ``grid``: the same [A | B] per candidate,
+    (4, 6, C), for n = windows x C elements in window-major order (broadcast; ``g`` then unused)."""
+    n = z.shape[-1]
+    if n < EINSUM_MIN:
+        return np.multiply(g, z).sum(axis=1)
+    if grid is not None:
+        return np.einsum("rkc,kwc->rwc", grid, z.reshape(6, -1, grid.shape[-1])).reshape(4, n)
+    return np.einsum("rkn,kn->rn", g, z)
+
+
+def _window_major(steps: np.ndarray) -> np.ndarray:
+    """(L, W, C) as a C-contiguous (W, C, L): what callers index and reduce (their sums in the same order)."""
+    return np.ascontiguousarray(steps.transpose(1, 2, 0))
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:
@@ -612,7 +691,13 @@ def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) ->
     err = sim - win.measured[:, None, :]
     if mask is not None:
         err = err[mask]
-    return np.sqrt(np.mean(err * err, axis=(0, -1)))
+    np.multiply(err, err, out=err)  # in place: err * err, without a second array of the simulation's size
+    return np.sqrt(np.mean(err, axis=(0, -1)))
+
+
+#: longest stretch of the trace between two states of :func:`internal_state`'s recursion (longer gaps between
+#: the rows asked for are split): its (points x stretch) input matrix stays about the size of the trace
+STATE_STRETCH = 256
 
 
 def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.ndarray,
@@ -628,14 +713,33 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
     ZOH discretisation, from rest at row 0) reconstructs the mode's state at every window start:
     a lightly damped mode rings on from one window into the next, which a start "at rest relative
     to each other" would miss. ``applied[j]`` and ``table_acc[j]`` act during step j.
-    """
-    from scipy.signal import lfilter, ss2tf
 
+    Computed only where it is needed: from one row asked for to the next (at most STATE_STRETCH
+    steps), s(p) = A^d s(p - d) + sum_q A^q B u(p - 1 - q), the sums of all stretches one product
+    with the powers A^q B, the A^d steps a short loop over the rows (all plants at once). numpy and
+    scipy.linalg only: scipy.signal's lfilter would cost its import (~1 s, most of a short trace's
+    explain) and filters the whole trace.
+    """
     from drivectl.plant_emulator.models import _discretise
 
     n = len(applied)
-    out_d = np.zeros((len(rows), len(plants)))
-    out_v = np.zeros((len(rows), len(plants)))
+    C = len(plants)
+    want = np.clip(np.asarray(rows, dtype=int), 0, n - 1)
+    # the points of the recursion: every row asked for, and enough between them that no stretch is longer
+    # than STATE_STRETCH; the state at point 0 is the rest the filter starts from
+    marks = np.unique(np.concatenate(([0], want)))
+    fill = [np.arange(a + STATE_STRETCH, b, STATE_STRETCH) for a, b in zip(marks[:-1], marks[1:], strict=True)
+            if b - a > STATE_STRETCH]
+    pts = np.unique(np.concatenate([marks, *fill])) if fill else marks
+    span = np.diff(pts)  # steps from each point to the next
+    M = int(span.max()) if len(span) else 1
+    q = np.arange(M)
+    src = pts[1:, None] - 1 - q[None, :]  # inputs u(p - 1 - q) of each stretch, newest first
+    valid = q[None, :] < span[:, None]
+    src = np.where(valid, src, n)  # column n of the padded inputs is 0
+    a_d = np.empty((C, 2, 2))
+    b_d = np.empty((C, 2))
+    u = np.zeros((C, n + 1))
     for c, p in enumerate(plants):
         d = p.design
         m0 = d.bodies[0].mass
@@ -644,16 +748,24 @@ def internal_state(plants: Sequence[Plant], applied: np.ndarray, table_acc: np.n
         ac = np.array([[0.0, 1.0], [-k / m0, -(cc + b0) / m0]])
         bc = np.array([[0.0], [1.0]])
         A, B = (np.asarray(x) for x in _discretise(ac, bc, p.dt))
+        a_d[c], b_d[c] = A, B[:, 0]
         f = np.asarray(applied, dtype=float)
         if b0 and table_vel is not None:
             f = f - b0 * table_vel
         if d.disturbance_amplitude and times is not None:
             f = f + d.disturbance_amplitude * np.sin(2 * math.pi * d.disturbance_frequency * (times + 0.5 * p.dt))
-        u = f / m0 - table_acc
-        for which, target in ((0, out_d), (1, out_v)):
-            cm = np.zeros((1, 2))
-            cm[0, which] = 1.0
-            num, den = ss2tf(A, B, cm, np.zeros((1, 1)))
-            y = lfilter(num[0], den, u)  # y[j] = state after inputs u[0..j-1]
-            target[:, c] = y[np.clip(rows, 0, n - 1)]
-    return out_d, out_v
+        u[c, :n] = f / m0 - table_acc
+    # A^q (q = 0..M) and A^q B (q < M), all plants at once
+    powers = np.empty((M + 1, C, 2, 2))
+    powers[0] = np.eye(2)
+    for i in range(1, M + 1):
+        powers[i] = a_d @ powers[i - 1]
+    hq = np.einsum("qcij,cj->cqi", powers[:M], b_d)  # (C, M, 2)
+    forced = np.matmul(u[:, src], hq)  # (C, K, 2)
+    states = np.zeros((len(pts), C, 2))
+    s = np.zeros((C, 2))
+    for i, d_steps in enumerate(span):
+        s = np.einsum("cij,cj->ci", powers[d_steps], s) + forced[:, i]
+        states[i + 1] = s
+    at = states[np.searchsorted(pts, want)]  # (R, C, 2)
+    return np.ascontiguousarray(at[..., 0]), np.ascontiguousarray(at[..., 1])

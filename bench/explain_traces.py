@@ -411,8 +411,10 @@ def emps_cases() -> list[RealCase]:
                  "viscous", asym, meta={"transport_delay_cycles": "0"}, first=False),
         RealCase("planted: mass +30 %", "emps-train.csv", emps_plant(mass=1.3 * ref["mass"]), "mass",
                  {"mass": (ref["mass"], 0.05)}),
+        # the record's direction dependence as well, through the planted 0.6
         RealCase("planted: viscous x0.6", "emps-train.csv",
-                 emps_plant(c_pos=0.6 * ref["c_pos"], c_neg=0.6 * ref["c_neg"]), "viscous", {}),
+                 emps_plant(c_pos=0.6 * ref["c_pos"], c_neg=0.6 * ref["c_neg"]), "viscous",
+                 {k: (v / 0.6, tol) for k, (v, tol) in asym.items()}),
         RealCase("planted: offset left out", "emps-train.csv", PlantSpec("emps-reference", "rigid", "N", dict(ref)),
                  "offset", {"force": (EMPS_OFFSET, 0.5)}, first=False),
         # the record carries the benchmark's direction-dependent friction as well (named first, as on the

@@ -92,6 +92,11 @@ NEXT_CANDIDATES = len(FITTERS)
 #: effect just named could have masked them: it took the gap down to this share or less (a 2.5 mm periodic
 #: force hid a 66 Hz mode: 50 -> 9 um; docs/explain.md)
 RETRY_GAP_FALL = 0.5
+#: a fitter that refines an effect already named by a simpler fitter (key -> the key it refines), tried in
+#: the later rounds in its place: while the gap is large the ranking's charge per parameter is too, so a
+#: direction dependence is first named as plain viscous and shows only once the rest is explained
+#: (EMPS, viscous x 0.6: plain viscous, 73.7 um left, where c+/c- and the offset leave 37.5; docs/explain.md)
+REFINES = {"viscous+-": "viscous"}
 
 
 @dataclass
@@ -293,7 +298,8 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                 round_keys = keys
             else:
                 have = {f.effect for f in named}
-                round_keys = [k for k in first_rank if run_effect(k) not in have][:NEXT_CANDIDATES]
+                round_keys = [k for k in first_rank if run_effect(k) not in have
+                              or _refined(k, named) is not None][:NEXT_CANDIDATES]
                 # a mode or lash masked in round 1 by a stronger effect (a periodic force) shows only once
                 # that one is in: the splitting ones are tried again, at their cost (half a round), when
                 # the effect just named took most of the gap (one that took less could not hide them)
@@ -333,7 +339,8 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
             ok = True
             if best.effect == "saturation" and best.params["limit"] >= float(np.max(np.abs(prep.effort))):
                 ok, decision = False, "the best, saturation, clips nothing (limit above every command): no evidence"
-            trial = named + [best]
+            j = _refined(best.key, named)
+            trial = named + [best] if j is None else [*named[:j], _merge_refined(named[j], best), *named[j + 1:]]
             if ok:
                 # all named parameters refitted together (the first alone: a finer optimum than its grid),
                 # so that the next round's gain is the new effect's, not a better fit of the old ones
@@ -367,7 +374,8 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                     decision = (f"stop: the best, {best.key}, improves only {st_trial['improved']} windows "
                                 f"(needs {MIN_IMPROVED})")
                 else:
-                    decision = (f"named {best.effect}: gain {st_trial['robust_gain'] / floor ** 2:.2f} floor^2, "
+                    what = f"named {best.effect}" if j is None else f"{named[j].key} refined to {best.key}"
+                    decision = (f"{what}: gain {st_trial['robust_gain'] / floor ** 2:.2f} floor^2, "
                                 f"{net / floor ** 2:.2f} after its parameter charge; {st_trial['improved']} windows "
                                 f"better, {st_trial['worse']} worse")
             if lag_note:
@@ -482,6 +490,19 @@ def _overdamped_after_delay(cands: list[tuple[float, Fit, dict[str, float]]], fl
     cands.insert(0, cands.pop(j))  # the lag's own effect takes the mode's place
     return (f"resonance at damping {best.params['damping']:.2f} (>= {OVERDAMPED:g}: no resonant peak, a lag) "
             f"ranked after delay")
+
+
+def _refined(key: str, named: list[Fit]) -> int | None:
+    """The index of the named fit that fitter ``key`` refines (REFINES), or None."""
+    base = REFINES.get(key)
+    return next((i for i, f in enumerate(named) if f.key == base), None)
+
+
+def _merge_refined(old: Fit, new: Fit) -> Fit:
+    """The refined fit, fitted on top of ``old`` (viscous scales multiply), as one fit of the effect."""
+    s = old.params["scale"]
+    params = {"scale": s * new.params["scale"], "scale_neg": s * new.params.get("scale_neg", new.params["scale"])}
+    return Fit(old.effect, params, new.gap, dict(new.extra), new.note, new.key)
 
 
 def _floor_of(prep: Prepared, mse: np.ndarray, rough: np.ndarray) -> float:

@@ -225,7 +225,7 @@ class BatchSim:
         # takes moving up (with direction-dependent B these depend on the direction too: left to the step)
         t["nfcp"], t["g1p"], t["g1n"] = -t["fcp"], t["b1p"] * t["fcp"], t["b1p"] * t["fcn"]
         t["exc"], t["stv"] = self.st_exc[:, 0], self.st_vel[:, 0]
-        t["off"], t["lim"] = self.offset, self.limit
+        t["off"], t["lim"], t["nlim"] = self.offset, self.limit, -self.limit
         t["pa"], t["pk"], t["pp"] = self.per_amp, self.per_k, self.per_phase
         t["da"], t["dw"] = self.dist_a, self.dist_w
         t["dc"], t["df"] = self.delay_cycles, self.delay_frac
@@ -261,9 +261,8 @@ class BatchSim:
     def _run_one(self, win: Windows) -> tuple[np.ndarray, np.ndarray]:
         W, C, L = len(win.start), len(self.plants), win.length
         x, v = self._initial(win)
-        # step-major while stepping (each step's (W, C) written contiguously), (W, C, L) at the end
-        out = np.empty((L, W, C))
-        out_v = np.empty((L, W, C))
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L))
         if not self.cycle_ok:
             # substeps for every window and candidate (flat arrays; the coefficients gathered once)
             cidx = np.tile(np.arange(C), W)
@@ -272,18 +271,19 @@ class BatchSim:
             xf, vf = x.reshape(-1), v.reshape(-1)
             for j in range(L):
                 xf, vf = self._substeps_one(win, j, xf, vf, widx, co)
-                out[j] = xf.reshape(W, C)
-                out_v[j] = vf.reshape(W, C)
-            return _window_major(out), _window_major(out_v)
+                out[:, :, j] = xf.reshape(W, C)
+                out_v[:, :, j] = vf.reshape(W, C)
+            return out, out_v
         for j in range(L):
             x, v = self._cycle_one(win, j, x, v)
-            out[j] = x
-            out_v[j] = v
-        return _window_major(out), _window_major(out_v)
+            out[:, :, j] = x
+            out_v[:, :, j] = v
+        return out, out_v
 
     def _gather(self, cidx: np.ndarray) -> dict[str, np.ndarray]:
         """The per-candidate coefficients of the substep kernel for flat elements of candidates ``cidx``."""
-        keys = ["lim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p", "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
+        keys = ["lim", "nlim", "a00p", "a01p", "a10p", "a11p", "b0p", "b1p",
+                "a00n", "a01n", "a10n", "a11n", "b0n", "b1n"]
         keys += ["fcp", "fcn", "nfcp", "g1p", "g1n"] if self.coulomb[0] else []
         keys += ["exc", "stv"] if self._stribeck else []
         keys += ["off"] if self.has_offset or self.has_periodic else []
@@ -307,7 +307,7 @@ class BatchSim:
         t = self._t1
         n = self.substeps
         H = win.history
-        f = np.clip(win.applied[:, H + j][:, None], -t["lim"][None, :], t["lim"][None, :])
+        f = np.minimum(np.maximum(win.applied[:, H + j][:, None], t["nlim"][None, :]), t["lim"][None, :])
         if self.has_offset:
             f = f + t["off"][None, :]
         pos = v > 0.0
@@ -390,7 +390,7 @@ class BatchSim:
             cur = win.applied[w, H + j - dc]
             prev = win.applied[w, H + j - dc - 1]
         else:
-            f_in = np.clip(win.applied[w, H + j], -lim, lim)
+            f_in = np.minimum(np.maximum(win.applied[w, H + j], co["nlim"]), lim)  # np.clip's numbers, cheaper
             if self.has_offset and const_f:
                 f_in = f_in + co["off"]
         coul = bool(self.coulomb[0])
@@ -500,7 +500,7 @@ class BatchSim:
 
     def _params_two(self, cid: np.ndarray, wid: np.ndarray, win: Windows) -> dict[str, Any]:
         """Per-element parameters of the two-body substeps for flat elements of candidates ``cid``."""
-        p: dict[str, Any] = {"cid": cid, "wid": wid, "base": cid * 8, "lim": self.limit[cid],
+        p: dict[str, Any] = {"cid": cid, "wid": wid, "base": cid * 8, "lim": self.limit[cid], "nlim": -self.limit[cid],
                              "gap": self.gap[cid], "kh": self.stiff[cid] * (0.5 * self.gap[cid]),
                              "off": self.offset[cid] if (self.has_offset or self.has_periodic) else np.zeros(len(cid)),
                              "fcp": self.fc_pos[cid].T, "fcn": self.fc_neg[cid].T,
@@ -534,23 +534,23 @@ class BatchSim:
             init[0] = init[2] + internal[0]
             init[1] = init[3] + internal[1]
         s = [np.ascontiguousarray(np.broadcast_to(a, (W, C))).reshape(-1) for a in init]
-        out = np.empty((L, W, C))  # step-major while stepping, as in _run_one
-        out_v = np.empty((L, W, C)) if with_velocity else None
+        out = np.empty((W, C, L))
+        out_v = np.empty((W, C, L)) if with_velocity else None
         par = self._params_two(np.tile(np.arange(C), W), np.repeat(np.arange(W), C), win)
         if self._fixed2:  # every (window, candidate): the candidates' matrices broadcast over the windows
             par["grid"] = self._table2[:, np.arange(C) * 8 + 4].reshape(4, 6, C).copy()
         for j in range(L):
             s = self._cycle_two(win, j, s, par) if self.cycle_ok else self._substeps_two(win, j, s, par)
-            out[j] = s[2].reshape(W, C)
+            out[:, :, j] = s[2].reshape(W, C)
             if out_v is not None:
-                out_v[j] = s[3].reshape(W, C)
-        return (_window_major(out), _window_major(out_v)) if out_v is not None else _window_major(out)
+                out_v[:, :, j] = s[3].reshape(W, C)
+        return (out, out_v) if with_velocity else out
 
     def _cycle_two(self, win: Windows, j: int, s: list[np.ndarray], par: dict[str, Any]) -> list[np.ndarray]:
         """Step j in closed form for the elements whose table keeps moving one way all cycle (its Coulomb
         friction a constant force then; body 0 carries none and its direction changes no matrix), checked
         on every substep's table velocity; by substeps for the rest (a stop, a start, a reversal)."""
-        f0 = np.clip(win.applied[par["wid"], win.history + j], -par["lim"], par["lim"])
+        f0 = np.minimum(np.maximum(win.applied[par["wid"], win.history + j], par["nlim"]), par["lim"])
         f1 = par["off"]
         x0, v0, x1, v1 = s
         pos = v1 > 0.0
@@ -603,7 +603,7 @@ class BatchSim:
             cur = win.applied[wid, H + j - par["dc"]]
             prev = win.applied[wid, H + j - par["dc"] - 1]
         else:
-            f_in = np.clip(win.applied[wid, H + j], -lim_in, lim_in)
+            f_in = np.minimum(np.maximum(win.applied[wid, H + j], par["nlim"]), lim_in)
         if G is None:
             # matrix index: engaged 4, body 0 moving - 2, table moving - 1 (see _two_body_tables)
             base = par["base"]
@@ -682,11 +682,6 @@ def affine_two(g: np.ndarray, z: np.ndarray, grid: np.ndarray | None = None) -> 
     if grid is not None:
         return np.einsum("rkc,kwc->rwc", grid, z.reshape(6, -1, grid.shape[-1])).reshape(4, n)
     return np.einsum("rkn,kn->rn", g, z)
-
-
-def _window_major(steps: np.ndarray) -> np.ndarray:
-    """(L, W, C) as a C-contiguous (W, C, L): what callers index and reduce (their sums in the same order)."""
-    return np.ascontiguousarray(steps.transpose(1, 2, 0))
 
 
 def window_rms(sim: np.ndarray, win: Windows, mask: np.ndarray | None = None) -> np.ndarray:

@@ -292,7 +292,8 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
         rounds: list[dict[str, Any]] = []
         failed_all: dict[str, str] = {}
         first_rank: list[str] = []
-        gap_at: dict[str, float] = {}  # fitter key -> the gap of the final model up to that effect
+        gap_at: dict[str, float] = {}  # fitter key -> the gap of the effects up to it, fitted jointly
+        prefix_gaps: dict[tuple[str, ...], float] = {}  # the named keys after a round -> that model's gap
         for r in range(MAX_EFFECTS):
             if r == 0:
                 round_keys = keys
@@ -394,17 +395,14 @@ def _explain(trace: Trace, nominal: PlantSpec, out_dir: str | Path | None, sourc
                 break
             # an effect the joint refit no longer needs (its gain gone, e.g. a lash width driven to nothing) is dropped
             named, current, mse_cur = _prune(prep, nominal, trial, mse_trial, floor)
+            prefix_gaps[tuple(f.key for f in named)] = math.sqrt(float(np.mean(mse_cur)))
             if len(named) < len(trial):
                 kept = {f.key for f in named}  # (the kept ones are refitted: new objects, same keys)
                 rounds[-1]["decision"] += "; dropped after the joint refit: " + ", ".join(
                     f.effect for f in trial if f.key not in kept) + " (the others refitted without it)"
         if named:
             named, current, mse_cur, swaps = _simplify(prep, nominal, named, mse_cur, floor, alone)
-            # the gaps after each effect, of the final model built up in order: a later joint refit (or a
-            # simplification) changes the earlier effects' parameters, so the gaps read when each was named
-            # would not add up to the final gap
-            mses_in_order, _ = _mse_of(prep, [_build(nominal, named[:j + 1]) for j in range(len(named))])
-            gap_at = {f.key: math.sqrt(float(np.mean(mses_in_order[:, j]))) for j, f in enumerate(named)}
+            gap_at = _prefix_gaps(prep, nominal, named, mse_cur, prefix_gaps)
             for old_fit, new_fit in swaps:
                 if new_fit is None:
                     rounds[-1]["decision"] += (f"; then {old_fit.key} dropped: the others refitted without it "
@@ -469,6 +467,26 @@ def _cpu_seconds() -> float:
 def run_effect(key: str) -> str:
     """The effect a fitter key adds (``viscous+-`` adds ``viscous``)."""
     return key.rstrip("+-")
+
+
+def _prefix_gaps(prep: Prepared, nominal: PlantSpec, named: list[Fit], mse: np.ndarray,
+                 seen: dict[tuple[str, ...], float]) -> dict[str, float]:
+    """The gap after each named effect: of the effects up to it, fitted jointly (the whole model's for the
+    last). A later joint refit moves the earlier effects' parameters (the EMPS record's c+/c- settle beside
+    the offset named after them: with that offset left out they leave 144 um where the nominal plant left
+    74), so the final parameters of a prefix say nothing about what it explains. A prefix the rounds
+    already fitted jointly keeps that round's gap; one they did not (after a refinement or a
+    simplification) is refitted; the better of that and the final parameters counts."""
+    out = {named[-1].key: math.sqrt(float(np.mean(mse)))}
+    for j in range(len(named) - 1):
+        prefix = named[:j + 1]
+        keys = tuple(f.key for f in prefix)
+        if keys in seen:
+            out[prefix[-1].key] = seen[keys]
+            continue
+        candidates = [prefix, refine_jointly(prep, nominal, prefix)]
+        out[prefix[-1].key] = float(np.min(_gaps_grouped_of(prep, nominal, candidates)))
+    return out
 
 
 def _overdamped_after_delay(cands: list[tuple[float, Fit, dict[str, float]]], floor: float) -> str:

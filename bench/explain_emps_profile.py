@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from explain_traces import EMPS_REFERENCE, emps_dir  # noqa: E402
+from explain_traces import EMPS_REFERENCE, advance_effort, emps_dir  # noqa: E402
 
 from drivectl.plant_emulator.models import PlantSpec  # noqa: E402
 from drivectl.tools.explain_data import gaps_of, prepare  # noqa: E402
@@ -54,9 +54,7 @@ def _viscous(scale: float = 0.82, scale_neg: float = 1.19) -> Fit:
 
 def _cut(tr: Trace, sl: slice, advance: int = 0) -> Trace:
     cols = {k: np.asarray(v)[sl] for k, v in tr.columns.items()}
-    if advance:
-        e = cols["effort"]
-        cols["effort"] = np.concatenate((e[advance:], np.full(advance, e[-1])))
+    cols["effort"] = advance_effort(cols["effort"], advance)
     return Trace(cols, dict(tr.meta))
 
 

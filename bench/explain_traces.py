@@ -392,9 +392,15 @@ class RealCase:
         tr = Trace.read(folder / self.file)
         tr.meta.update(self.meta)
         if self.advance:
-            e = tr.columns["effort"]
-            tr.columns["effort"] = np.concatenate((e[self.advance:], np.full(self.advance, e[-1])))
+            tr.columns["effort"] = advance_effort(tr.columns["effort"], self.advance)
         return tr
+
+
+def advance_effort(effort: np.ndarray, rows: int) -> np.ndarray:
+    """The effort ``rows`` rows earlier (a planted timing error: each force that many cycles early), the
+    last value held at the end."""
+    e = np.asarray(effort)
+    return np.concatenate((e[rows:], np.full(rows, e[-1]))) if rows else e
 
 
 def emps_cases() -> list[RealCase]:

@@ -1,5 +1,5 @@
 """`python -m drivectl`."""
 
-from drivectl.tools.cli import main
+from drivectl.tools.cli.main import main
 
 raise SystemExit(main())

@@ -17,9 +17,9 @@ import importlib.util
 import json
 import time
 
-from drivectl.tools.bode import measure_frf
-from drivectl.tools.commission import identify_axis
-from drivectl.tools.config import load_config
+from drivectl.machine.config import load_config
+from drivectl.tools.commissioning.bode import measure_frf
+from drivectl.tools.commissioning.commands import identify_axis
 
 
 def main() -> None:
@@ -38,8 +38,8 @@ def main() -> None:
     bode = measure_frf(cfg, "z")
     bode_s = time.perf_counter() - t0
     tune_s = None
-    if importlib.util.find_spec("drivectl.tools.tune") is not None:
-        from drivectl.tools.tune import tune
+    if importlib.util.find_spec("drivectl.tools.commissioning.tune") is not None:
+        from drivectl.tools.commissioning.tune import tune
 
         t0 = time.perf_counter()
         # the search's own speed, on the model alone (the robust default scores every candidate on the

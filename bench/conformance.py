@@ -23,11 +23,11 @@ from drivectl.driver.axis import AxisError
 from drivectl.driver.canopen_axis import CanopenAxis
 from drivectl.driver.network import close_threaded, open_bus, threaded_network, unique_virtual_channel
 from drivectl.driver.units import EffortScale, Encoder
+from drivectl.machine.build import plant_specs
+from drivectl.machine.bus_budget import AUTO_ORDER, axes_per_bus, bus_load, machine_load
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.node402 import EmulatedDrive
-from drivectl.tools.bus_budget import AUTO_ORDER, axes_per_bus, bus_load, machine_load
-from drivectl.tools.config import load_config
-from drivectl.tools.conformance import FAIL, PASS, ServedEmulator, format_table, run_checks
-from drivectl.tools.machine import plant_specs
+from drivectl.tools.conformance.suite import FAIL, PASS, ServedEmulator, format_table, run_checks
 
 
 def main() -> None:
@@ -62,7 +62,7 @@ def main() -> None:
     best = max(taken, key=lambda m: axes_per_bus(0.001, 1_000_000, mapping=m)) if taken else None
     with_best = bus_load(per_bus, 0.001, 1_000_000, best).text() if best and per_bus else "-"
     print(f"axes per 1 Mbit/s bus at 1 kHz under 70 %: {per_bus} (target 4; mappings the drive takes: "
-          f"{', '.join(taken) or 'none'}; {with_best}; see tools/bus_budget.py)")
+          f"{', '.join(taken) or 'none'}; {with_best}; see machine/bus_budget.py)")
     print(f"three-axis default: {three.text()} (target < 70 %)")
 
 

@@ -34,9 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from explain_traces import EMPS_REFERENCE, advance_effort, emps_dir  # noqa: E402
 
 from drivectl.plant_emulator.models import PlantSpec  # noqa: E402
-from drivectl.tools.explain_data import gaps_of, prepare  # noqa: E402
-from drivectl.tools.explain_fit import Fit, refine_jointly  # noqa: E402
-from drivectl.tools.trace import Trace  # noqa: E402
+from drivectl.tools.explain.data import gaps_of, prepare  # noqa: E402
+from drivectl.tools.explain.fit import Fit, refine_jointly  # noqa: E402
+from drivectl.tracefile.format import Trace  # noqa: E402
 
 OFFSETS = (-1.0, 0.0, 0.25, 0.5, 1.0, 2.0, 3.1648)
 SHIFTS_MS = (-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5)
@@ -139,7 +139,7 @@ def main() -> int:
     if args.explain:
         from explain_traces import emps_plant
 
-        from drivectl.tools.explain import explain
+        from drivectl.tools.explain.core import explain
 
         symmetric = synthetic_replica(Trace.read(d / "emps-train-asrecorded.csv"), emps_plant())
         runs = (("replica", replica, spec), ("replica advanced 1 ms", _cut(replica, slice(None), advance=1), spec),

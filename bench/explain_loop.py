@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drivectl.tools.cli import main as drivectl
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main as drivectl
+from drivectl.tracefile.format import Trace
 
 
 def run(effect: str, controller: str, out: Path, duration: float) -> dict[str, object]:

@@ -25,12 +25,12 @@ from typing import Any
 import numpy as np
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import Limits, run
+from drivectl.controllers.runtime.servo import Limits, run
 from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.library import load_profile
 from drivectl.profiles.sequence import back_and_forth
-from drivectl.tools.trace import Trace
+from drivectl.tracefile.format import Trace
 
 DT = 0.001
 RESOLUTION = 76.29e-9
@@ -57,7 +57,7 @@ SOFT_CONTROLLERS: list[tuple[str, dict[str, Any]]] = [
 ]
 
 #: the same on the two-mass axis z, whose effort is in V (N gains there would drive ~1000 x the effort):
-#: z's configured controller (mbc, tools/config.py) and the TDE laws at their two-mass defaults
+#: z's configured controller (mbc, machine/config.py) and the TDE laws at their two-mass defaults
 SOFT_CONTROLLERS_V: list[tuple[str, dict[str, Any]]] = [("mbc", {}), ("smc", {}), ("vprl", {})]
 
 AXIS_OF_PLANT = {"rigid-x": "x", "rigid-y": "y", "two-mass": "z"}

@@ -24,7 +24,7 @@ import argparse
 import json
 import time
 
-from drivectl.tools.fault_matrix import CASES, SAFE_BOUND_CYCLES, run_case
+from drivectl.tools.conformance.fault_matrix import CASES, SAFE_BOUND_CYCLES, run_case
 
 
 def main() -> None:

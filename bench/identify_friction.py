@@ -3,7 +3,7 @@
 Each axis runs a back-and-forth between -50 mm and +50 mm (inside the +-0.1 m stroke) at 5, 10, 20,
 40, 70 and 100 mm/s, jerk-limited (2 m/s^2, 100 m/s^3), with a 0.2 s dwell after every move, under
 PID + DOB (eqs (2)-(3), Table 1 gains, controllers/pid.py) through ``SimAxis`` at 1 kHz with the
-transport delay and the 76.29 nm quantisation on. The fit (tools/identify.py):
+transport delay and the 76.29 nm quantisation on. The fit (tools/commissioning/identify.py):
 
 * friction: on every settled constant-velocity stretch (first 0.25 s dropped) the mean commanded
   effort, which at constant velocity equals the friction whatever the loop; fc and c per direction
@@ -32,7 +32,7 @@ from typing import Any
 from drivectl.controllers.pid import PidDob
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
-from drivectl.tools.identify import RIGID_KEYS, fit_friction, identify_rigid
+from drivectl.tools.commissioning.identify import RIGID_KEYS, fit_friction, identify_rigid
 
 TOLERANCE = 0.02
 NOMINAL_MASS_GUESS = 100.0  # kg, the loop's (wrong on purpose) nominal mass

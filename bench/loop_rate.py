@@ -21,11 +21,11 @@ import time
 import can
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import Channel, run_channels
+from drivectl.controllers.runtime.servo import Channel, run_channels
 from drivectl.driver.network import unique_virtual_channel
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import load_config
 from drivectl.profiles.library import load_profile
-from drivectl.tools.config import load_config
-from drivectl.tools.machine import open_machine
 
 
 def lockstep_cps(names: list[str], seconds: float, pace: bool = False) -> tuple[float, dict]:
@@ -51,8 +51,8 @@ def cross_process_cps(transport: str, seconds: float) -> float:
     import tempfile
     from pathlib import Path
 
+    from drivectl.machine.config import load_config as load
     from drivectl.profiles.ptp import PointToPoint
-    from drivectl.tools.config import load_config as load
 
     body = ('cycle_s = 0.001\n[bus]\n{bus}\n[axes.x]\nnode_id = 1\nrated_effort = 100.0\nplant = "rigid-x"\n'
             'controller = "asmc"\nprofile = "short-move"\n')

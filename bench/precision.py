@@ -1,13 +1,13 @@
 """Precision over the bus: the model-based controller (mbc) on z and x, exact and mismatched (issue 16 point 7).
 
-Every case runs the embedded machine over the emulated CiA 402 bus (tools/machine.py ``open_machine``: 1 kHz
+Every case runs the embedded machine over the emulated CiA 402 bus (machine/build.py ``open_machine``: 1 kHz
 SYNC, the one-cycle transport delay of cyclic synchronous torque, 76.29 nm counts, effort in per mille of the
 rated effort), error = reference minus the encoder reading on every trace row:
 
 * ``z_nominal``: seed-000 (the paper's jerk-40 move, 65 mm), the exact two-mass plant, the model = the plant.
 * ``z_worst``: the same move on the worst of the +-10 % corners of m1, m2, k, n, b1, b2 (64; the drive plays
   the corner, the controller believes a model). The model comes from ``drivectl identify --axis z`` run on
-  the corner (tools/identify_two_mass.py, over the same bus): the corners are screened on SimAxis (bit for
+  the corner (tools/commissioning/identify_two_mass.py, over the same bus): the corners are screened on SimAxis (bit for
   bit the emulated drive) under the nominal model, the three worst are identified and run with their
   identified models, and the worst of those counts. ``--model FILE`` or ``--no-identify`` use one model for
   every corner instead (the output says which); the table also shows the worst corner under the nominal
@@ -40,12 +40,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent.parent))
 
 from drivectl.controllers.registry import make_controller  # noqa: E402
 from drivectl.controllers.robust import corners  # noqa: E402
-from drivectl.controllers.servo import run  # noqa: E402
+from drivectl.controllers.runtime.servo import run  # noqa: E402
+from drivectl.machine.build import axis_profile, open_machine  # noqa: E402
+from drivectl.machine.config import load_config  # noqa: E402
 from drivectl.plant_emulator.models import PlantSpec, load_plant  # noqa: E402
-from drivectl.tools.config import load_config  # noqa: E402
-from drivectl.tools.machine import axis_profile, open_machine  # noqa: E402
-from drivectl.tools.metrics import effort_roughness  # noqa: E402
-from drivectl.tools.trace import Trace  # noqa: E402
+from drivectl.tracefile.format import Trace  # noqa: E402
+from drivectl.tracefile.metrics import effort_roughness  # noqa: E402
 
 STRIBECK = ("stribeck", {"excess_force": 15.0, "velocity": 0.002})
 NOISE = 2.0
@@ -91,8 +91,8 @@ def screen_corners(model: PlantSpec, count: int | None) -> list[tuple[float, Pla
 
 
 def identified_model(plant: PlantSpec, sim: bool, seconds: float) -> PlantSpec:
-    """``drivectl identify --axis z`` (tools/identify_two_mass.py) run on ``plant``: the model it writes."""
-    from drivectl.tools.identify_two_mass import identify_two_mass
+    """``drivectl identify --axis z`` (tools/commissioning/identify_two_mass.py) on ``plant``: the model it writes."""
+    from drivectl.tools.commissioning.identify_two_mass import identify_two_mass
 
     prior = load_plant("two-mass")
     with tempfile.TemporaryDirectory() as tmp:
@@ -104,7 +104,7 @@ def identified_model(plant: PlantSpec, sim: bool, seconds: float) -> PlantSpec:
 
 def learned(plant: PlantSpec, model_path: str, sim: bool) -> dict[str, float] | None:
     """``drivectl trace --axis z --repeat 10 --learn`` on ``plant`` (the CLI's own path); the 10th run."""
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
 
     with tempfile.TemporaryDirectory() as tmp:
         ppath = Path(tmp) / "corner.toml"

@@ -46,13 +46,13 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.pid_nftsm import TdePidNftsm
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.controllers.tde_smc import TdeSmc
 from drivectl.controllers.vprl import TdeVprl
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.metrics import tracking_error
+from drivectl.tracefile.metrics import tracking_error
 
 DT = 0.001  # s, the paper's Delta t and sampling period
 DURATION = 2.5  # s, "total motion time"

@@ -37,11 +37,11 @@ from typing import Any
 import numpy as np
 
 from drivectl.controllers.asmc import LAWS, Asmc
-from drivectl.controllers.servo import Limits, run
+from drivectl.controllers.runtime.servo import Limits, run
 from drivectl.plant_emulator.models import PlantSpec, load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.circle import Circle
-from drivectl.tools.metrics import ElectricalModel, chattering_sigma, mechanical_work, tracking_error
+from drivectl.tracefile.metrics import ElectricalModel, chattering_sigma, mechanical_work, tracking_error
 
 MWH = 3.6  # J per mWh
 STANDBY_W = 95.0  # the wall-plug standby the paper's power meter includes (DESIGN.md)

@@ -80,7 +80,7 @@ def _move_and_jog() -> tuple[float, float]:
     # under mbc (x's default; pinned here): paper 004's ASMC has no integral action and holds x ~4 um off
     import dataclasses
 
-    from drivectl.tools.config import load_config
+    from drivectl.machine.config import load_config
 
     cfg = load_config()
     cfg = dataclasses.replace(cfg, axes={**cfg.axes, "x": dataclasses.replace(cfg.axes["x"], controller="mbc",

@@ -22,12 +22,12 @@ import time
 import numpy as np
 
 from drivectl.controllers.pid_nftsm import TdePidNftsm
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.batch import run_batch
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.library import load_profile
-from drivectl.tools.config import load_config
 
 DT = 0.001
 

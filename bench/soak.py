@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from drivectl.tools.soak import run_soak
+from drivectl.tools.conformance.soak import run_soak
 
 
 def main() -> None:

@@ -32,11 +32,11 @@ CHILD = """
 import resource, sys, time
 t0 = time.perf_counter()
 if sys.argv[1] == "read":
-    from drivectl.tools.trace import Trace
+    from drivectl.tracefile.format import Trace
     tr = Trace.read(sys.argv[2])
     assert len(tr) == int(sys.argv[3])
 else:
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
     import contextlib, io
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["summary", sys.argv[2]]) == 0
@@ -45,7 +45,7 @@ print(time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxr
 
 
 def stream(folder: Path, rows: int) -> tuple[Path, float, int, int]:
-    from drivectl.tools.trace_stream import TraceWriter
+    from drivectl.tracefile.stream import TraceWriter
 
     meta = {"axis": "x", "effort_unit": "N", "dt_s": 0.001}
     timing = TraceWriter(folder / "timing", "x", columns=COLS, meta=meta).start()  # untraced: the append's cost
@@ -74,7 +74,7 @@ def stream(folder: Path, rows: int) -> tuple[Path, float, int, int]:
 def bulk(folder: Path, rows: int) -> Path:
     import numpy as np
 
-    from drivectl.tools.trace_stream import TraceWriter
+    from drivectl.tracefile.stream import TraceWriter
 
     w = TraceWriter(folder, "big", columns=COLS, meta={"axis": "big", "effort_unit": "N", "dt_s": 0.001},
                     block_rows=65536).start()

@@ -227,7 +227,7 @@ class Controller(ABC):
         the default needs nothing. Callers that cannot give a profile skip it: the controller then works
         from each cycle's Reference alone. It is :meth:`use_preview` of :meth:`preview`: the resident loop
         (session.py) computes the preview outside its cycle and installs it in the cycle the run starts,
-        the controller continuing from its hold (controllers/servo.py ``run_preview``)."""
+        the controller continuing from its hold (controllers/runtime/servo.py ``run_preview``)."""
         self.use_preview(self.preview(profile, times))
 
     def preview(self, profile: Any, times: np.ndarray) -> Any:

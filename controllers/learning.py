@@ -4,7 +4,7 @@
 of a run, the k-th sample of a correction sequence (effort unit) to the inner controller's effort. The
 inner controller's ``step`` stays what it was: pure, unaware of the correction (a time-delay estimator
 sees the correction as part of the disturbance it estimates; the learning accounts for that because it
-learns through the closed loop, see tools/learn.py). Past the end of the sequence the correction is 0.
+learns through the closed loop, see tools/commissioning/learn.py). Past the end of the sequence the correction is 0.
 
 The wrapper keeps the contract of every controller: explicit state (the cycle index), ``reset()``
 back to cycle 0, fixed ``dt``, ``describe()`` for the trace metadata (the inner controller's keys plus

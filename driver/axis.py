@@ -44,7 +44,7 @@ class FaultKind(Enum):
     ROGUE_SYNC = "rogue sync"
     FOREIGN_NMT = "foreign nmt"
     LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
-    RUN_CHECK = "run check"  # a [checks] fault threshold passed (controllers/run_checks.py)
+    RUN_CHECK = "run check"  # a [checks] fault threshold passed (controllers/runtime/run_checks.py)
 
 
 class AxisError(RuntimeError):

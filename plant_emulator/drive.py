@@ -64,7 +64,7 @@ class DriveModel:
         # False while no mode is selected that this drive runs (0x6060 = 0, CiA 402: no torque then);
         # SimAxis has no 0x6060 and is always in cyclic synchronous torque
         self.mode_ok = True
-        #: switches and mechanical stops (controllers/homing.py EmulatorIO): 0x60FD and hard stops
+        #: switches and mechanical stops (controllers/runtime/homing.py EmulatorIO): 0x60FD and hard stops
         self.io = io
 
     @property

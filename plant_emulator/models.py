@@ -153,7 +153,7 @@ class PlantSpec:
     source: str = "<memory>"
     #: what identification found out about this model (``[identified]`` in the file: the well-identified
     #: combinations such as total_mass and mode_hz with their uncertainties, the poorly identified
-    #: parameters); informational, it changes no dynamics (tools/identify_two_mass.py)
+    #: parameters); informational, it changes no dynamics (tools/commissioning/identify_two_mass.py)
     identified: dict[str, Any] = field(default_factory=dict)
 
     def with_effect(self, name: str, **params: float) -> PlantSpec:
@@ -395,7 +395,7 @@ class Plant:
         self._dist_w = 2 * math.pi * design.disturbance_frequency
         self._dist_a = design.disturbance_amplitude
 
-    # -- the discretisation, read by the batch simulators (tools/explain_sim.py, plant_emulator/batch.py) --
+    # -- the discretisation, read by the batch simulators (tools/explain/sim.py, plant_emulator/batch.py) --
     @property
     def gap(self) -> float:
         """Backlash width, m (0: the bodies are always engaged)."""

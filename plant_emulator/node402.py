@@ -428,7 +428,7 @@ class EmulatedDrive:
             return self.mode
         if index == cia402.ERROR_REGISTER:
             return self.error_register
-        if index == DIGITAL_INPUTS:  # switches (session homing: controllers/homing.py)
+        if index == DIGITAL_INPUTS:  # switches (session homing: controllers/runtime/homing.py)
             return d.digital_inputs()
         return None
 

@@ -72,12 +72,12 @@ class SimWallClock:
 
 
 def enabled_wall_loop(ch, **kw):
-    """A resident loop on the wall clock (controllers/loop.py) over ``ch``, its clock the monotonic one plus a
+    """A resident loop on the wall clock (controllers/runtime/loop.py) over ``ch``, its clock the monotonic one plus a
     jump a test sets (``jump["s"]``: a stall as far as the loop can tell, whatever the machine's load), started
     and with the axis enabled and in servo. Returns (loop, jump); the caller closes the loop."""
     import time
 
-    from drivectl.controllers.loop import AxisState, ServoLoop
+    from drivectl.controllers.runtime.loop import AxisState, ServoLoop
 
     jump = {"s": 0.0}
     loop = ServoLoop([ch], clock="wall", now=lambda: time.perf_counter() + jump["s"], **kw)

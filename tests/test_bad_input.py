@@ -20,8 +20,8 @@ from pathlib import Path
 
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML as CONFIG
+from drivectl.machine.config import DEFAULT_CONFIG_TOML as CONFIG
+from drivectl.tools.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 EDS = (ROOT / "driver" / "eds" / "drivectl-emulated-drive.eds").read_text()

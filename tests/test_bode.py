@@ -10,9 +10,16 @@ import math
 import numpy as np
 import pytest
 
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.models import load_plant
-from drivectl.tools.bode import CSV_COLUMNS, add_bode_parser, cmd_bode, measure_frf, model_frf, model_modes
-from drivectl.tools.config import load_config
+from drivectl.tools.commissioning.bode import (
+    CSV_COLUMNS,
+    add_bode_parser,
+    cmd_bode,
+    measure_frf,
+    model_frf,
+    model_modes,
+)
 
 #: the two-mass axial mode of the model, sqrt(k / mu) / 2 pi (plants/two-mass.toml)
 MODE_HZ = 89.2
@@ -160,7 +167,7 @@ def test_friction_axis_measured_about_a_velocity_bias_has_no_false_mode() -> Non
 
 
 def test_bias_ramp_is_smooth_and_travels_what_it_says() -> None:
-    from drivectl.tools.bode import BiasRamp
+    from drivectl.tools.commissioning.bode import BiasRamp
 
     prof = BiasRamp(-0.02, 0.008, 5.5)
     t = np.arange(0, 5.5 + 1e-9, 1e-4)

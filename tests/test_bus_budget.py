@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from drivectl.tools.bus_budget import axes_per_bus, bus_load, frame_bits
-from drivectl.tools.cli import main
+from drivectl.machine.bus_budget import axes_per_bus, bus_load, frame_bits
+from drivectl.tools.cli.main import main
 
 
 def test_frame_bits_and_the_issue_figures():
@@ -57,7 +57,7 @@ def test_auto_mapping_three_axes_compact_and_bit_for_bit_with_sim(tmp_path, caps
     velocity is then derived on the host, by SimAxis the same way: --sim equals the bus bit for bit."""
     import numpy as np
 
-    from drivectl.tools.trace import Trace
+    from drivectl.tracefile.format import Trace
 
     p = _cfg(tmp_path)
     assert _trace(tmp_path, p, "x,y,z") == 0

@@ -19,8 +19,8 @@ import pytest
 
 from drivectl.driver import network, socketcand_client
 from drivectl.driver.network import INTERFACES, BusOpenError, open_bus, unique_virtual_channel
-from drivectl.tools.cli import main
-from drivectl.tools.config import ConfigError, load_config
+from drivectl.machine.config import ConfigError, load_config
+from drivectl.tools.cli.main import main
 
 AXIS = '[axes.x]\nplant = "rigid-x"\ncontroller = "asmc"\nprofile = "circle"\n'
 PCAN = '[bus]\ninterface = "pcan"\nchannel = "PCAN_USBBUS1"\nbitrate = 1000000\n[bus.options]\ndevice_id = 1\n'

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.driver import cia402
 from drivectl.driver.axis import AxisError, FaultKind
 from drivectl.driver.canopen_axis import CanopenAxis, Identity, SyncClock
@@ -17,12 +17,12 @@ from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NmtCommand, NmtSt
 from drivectl.driver.cia402 import Command, PowerState
 from drivectl.driver.network import Lockstep, LockstepNetwork, open_bus, unique_virtual_channel
 from drivectl.driver.units import EffortScale, Encoder
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.node402 import EMULATED_DRIVE_EDS, EmulatedDrive
 from drivectl.profiles.library import load_profile
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.config import load_config
-from drivectl.tools.machine import open_machine
 
 DT = 0.001
 
@@ -360,7 +360,7 @@ def test_canopen_error_logs_fail_tests(fail_on_canopen_errors):
 def test_bus_log_reads_back_with_the_sync_pdo_sequence(tmp_path, suffix, capsys):
     import can
 
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
 
     log = tmp_path / f"bus{suffix}"
     rc = main(["trace", "--axis", "x", "--duration", "0.02", "--out", str(tmp_path), "--no-plot", "--quiet",
@@ -378,7 +378,7 @@ def test_bus_log_reads_back_with_the_sync_pdo_sequence(tmp_path, suffix, capsys)
 
 
 def test_bus_log_with_an_unknown_suffix_is_bad_input(tmp_path, capsys):
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
 
     rc = main(["trace", "--axis", "x", "--duration", "0.01", "--out", str(tmp_path), "--bus-log",
                str(tmp_path / "bus.xyz")])

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 
 def test_trace_axis_x_writes_trace_plot_and_summary(tmp_path, capsys):

@@ -6,9 +6,9 @@ import json
 
 import pytest
 
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.models import load_plant
-from drivectl.tools.cli import main
-from drivectl.tools.config import load_config
+from drivectl.tools.cli.main import main
 
 
 def test_config_show_and_init_round_trip(tmp_path, capsys):

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, ConfigError, load_config, parse_config
-from drivectl.tools.config_io import merge_into, show_text
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, ConfigError, load_config, parse_config
+from drivectl.machine.config_io import merge_into, show_text
+from drivectl.tools.cli.main import main
 
 # a file that leaves things to defaults and to the drive, on a socketcand bus
 SPARSE = """\

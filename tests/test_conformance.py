@@ -13,8 +13,8 @@ import sys
 
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.conformance import CHECKS, FAIL, PASS
+from drivectl.tools.cli.main import main
+from drivectl.tools.conformance.suite import CHECKS, FAIL, PASS
 
 CONFIG = """
 cycle_s = 0.001

@@ -11,7 +11,7 @@ import pytest
 
 from drivectl.controllers.base import ARRAY_OPS, SCALAR_OPS, SettingsError
 from drivectl.controllers.pid_nftsm import TdePidNftsm, nftsm_gammas, nftsm_theta
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.controllers.tde_smc import TdeSmc
 from drivectl.controllers.vprl import TdeVprl
 from drivectl.driver.axis import Feedback

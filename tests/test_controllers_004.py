@@ -10,15 +10,15 @@ from drivectl.controllers.base import SettingsError
 from drivectl.controllers.dob import DisturbanceObserver
 from drivectl.controllers.pid import Pid, PidDob
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.driver.axis import Feedback
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.base import Reference
 from drivectl.profiles.circle import Circle
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.identify import identify_rigid
-from drivectl.tools.metrics import tracking_error
+from drivectl.tools.commissioning.identify import identify_rigid
+from drivectl.tracefile.metrics import tracking_error
 
 DT = 0.001
 RIGID_X = load_plant("rigid-x")

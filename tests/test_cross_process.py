@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import load_config
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.config import load_config
-from drivectl.tools.explain import explain
-from drivectl.tools.machine import open_machine
+from drivectl.tools.explain.core import explain
 
 AXIS_X = """
 cycle_s = 0.001
@@ -150,7 +150,7 @@ def test_scan_and_status_across_processes_read_the_nmt_state_from_the_drive(tmp_
     moment, then written back) and reports what the drive said; its 0x1017 is as it was found."""
     import json
 
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
 
     emu = Emulator(tmp_path, "--socketcand")
     try:

@@ -157,8 +157,8 @@ def test_rated_torque_written_scales_the_torque_and_a_long_rpdo_is_used_with_emc
 def test_in_process_the_heartbeat_consumer_runs_on_the_drive_clock():
     """Lockstep: the master stops (no SYNC, no heartbeat); the drive's own clock (Machine.let_drives_run)
     counts the consumer time, 300 ms as drivectl configures it, and the drive stops with 0x8130."""
-    from drivectl.tools.config import load_config
-    from drivectl.tools.machine import open_machine
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
 
     cfg = load_config(None)
     ac = cfg.axis("x")
@@ -199,9 +199,9 @@ class _LateMaster:
 
 def _paced_run(stall_s: float, *, paced: bool = True, rpdo_timeout_ms: int | None = None):
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Channel, Pacer, run_channels
-    from drivectl.tools.config import load_config
-    from drivectl.tools.machine import open_machine
+    from drivectl.controllers.runtime.servo import Channel, Pacer, run_channels
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
 
     cfg = load_config(None)
     ac = cfg.axis("x")
@@ -226,7 +226,7 @@ def test_paced_in_process_a_late_master_is_caught_by_the_drive_deadline():
     """--paced in-process: the drive's RPDO deadline (0x1400:05, 2 ms) runs on the wall clock, as across
     processes. A master 5 ms late is caught by the drive (0x8250, reaction per 0x6007); the master sees the
     drive leave Operation Enabled in its next sample and stops, the end state reported by the drive."""
-    from drivectl.controllers.servo import StopReason
+    from drivectl.controllers.runtime.servo import StopReason
 
     res, drive, _ = _paced_run(0.005)
     assert res.stop is StopReason.FAULT
@@ -260,15 +260,15 @@ def test_after_a_paced_run_the_drive_is_back_on_lockstep_time():
 
 
 def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_path):
-    """The session's loop on the wall clock (controllers/loop.py) paces the in-process drives as
+    """The session's loop on the wall clock (controllers/runtime/loop.py) paces the in-process drives as
     ``trace --paced`` does: a loop 200 ms late (a jump injected through its clock, so the outcome does not
     depend on how busy the machine is; below its own stall bound) is caught by the drive's RPDO deadline
     (50 ms here, so that real scheduling hiccups of a loaded test machine do not count)."""
 
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Channel
-    from drivectl.tools.config import load_config
-    from drivectl.tools.machine import open_machine
+    from drivectl.controllers.runtime.servo import Channel
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
 
     cfg = load_config(None)
     ac = cfg.axis("x")

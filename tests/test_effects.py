@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from helpers import PdController, SineProfile
 
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.plant_emulator.effects import EFFECTS, VOCABULARY, parse_effect
 from drivectl.plant_emulator.models import PlantError, load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis

@@ -18,7 +18,7 @@ import pytest
 
 from drivectl.driver.network import BusLog, attach_bus_log, close_threaded, open_bus, threaded_network
 from drivectl.driver.network import unique_virtual_channel as channel_name
-from drivectl.tools.cli import main
+from drivectl.tools.cli.main import main
 
 GUARD = 10.0
 

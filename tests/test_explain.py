@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from explain_traces import Case, make_trace  # noqa: E402
 
 from drivectl.plant_emulator.models import load_plant  # noqa: E402
-from drivectl.tools.explain import (  # noqa: E402
+from drivectl.tools.explain.core import (  # noqa: E402
     PARAM_NAMES,
     ExplainError,
     add_explain_parser,
@@ -30,8 +30,8 @@ from drivectl.tools.explain import (  # noqa: E402
     prepare,
     window_mse,
 )
-from drivectl.tools.explain_sim import BatchSim, make_windows  # noqa: E402
-from drivectl.tools.trace import Trace  # noqa: E402
+from drivectl.tools.explain.sim import BatchSim, make_windows  # noqa: E402
+from drivectl.tracefile.format import Trace  # noqa: E402
 
 PROFILE = {"start": 0.0, "distance": 0.05, "speeds": [0.02, 0.06, 0.1], "amax": 0.5, "jmax": 20.0, "dwell": 0.3,
            "repeats": 1}
@@ -252,7 +252,7 @@ def test_clean_circle_without_velocity_column_is_none():
 def test_transport_delay_cycles_from_the_trace():
     """A rig that applies the effort in the cycle it computes it (`# transport_delay_cycles: 0`)."""
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Limits, run
+    from drivectl.controllers.runtime.servo import Limits, run
     from drivectl.plant_emulator.sim_axis import SimAxis
     from drivectl.profiles.sequence import back_and_forth
 
@@ -297,7 +297,7 @@ def test_masked_effects_both_named():
 def test_no_single_window_decides_but_a_few_do():
     """The robust gain: one window's transient (or two) counts only as much as the third best window, while
     an effect that shows in a few windows (a faint stribeck at its starts) keeps its gain."""
-    from drivectl.tools.explain import _window_stats
+    from drivectl.tools.explain.core import _window_stats
 
     cur = np.full(60, 4.0)
     one = cur.copy()
@@ -313,7 +313,7 @@ def test_no_single_window_decides_but_a_few_do():
 def test_periodic_fit_on_top_of_a_long_delay(clean_traces):
     """The one-step force residual on a model with a named 6 ms delay reads efforts 6 cycles back (it
     raised IndexError in the lookahead of a shipped clean trace)."""
-    from drivectl.tools.explain_fit import fit_periodic, force_residual
+    from drivectl.tools.explain.fit import fit_periodic, force_residual
 
     prep = prepare(clean_traces["asmc"], load_plant("rigid-x").with_effect("delay", delay=0.0057))
     r, ok = force_residual(prep)
@@ -325,7 +325,7 @@ def test_velocity_estimate_passes_a_loops_oscillation():
     """Without the velocity column a window starts from the slope of a local polynomial; vprl's loop
     oscillates at ~50 Hz, where a cubic over 15 samples read 95 % of the velocity: the missing 5 % at
     every start was fitted as a 5 % mass error on clean traces (issue 17, point 4)."""
-    from drivectl.tools.explain_data import estimate_velocity
+    from drivectl.tools.explain.data import estimate_velocity
 
     dt, res = 0.001, 76.29e-9
     t = np.arange(0, 2.0, dt)
@@ -375,8 +375,8 @@ def test_overdamped_mode_ranked_after_delay():
     """A `resonance` at damping >= 0.7 has no resonant peak: it lags without ringing, a delay's signature.
     Ranked first it stood in for a 0.9 ms delay + 120 Hz mode (named as one 72 Hz mode at damping 0.7);
     behind the delay, the mode is found on top of it in the next round. A ringing mode stays first."""
-    from drivectl.tools.explain import _overdamped_after_delay
-    from drivectl.tools.explain_fit import Fit
+    from drivectl.tools.explain.core import _overdamped_after_delay
+    from drivectl.tools.explain.fit import Fit
 
     st = {"robust_gain": 3.0}
 

@@ -20,9 +20,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from explain_traces import EMPS_OFFSET, EMPS_REFERENCE, emps_asymmetric_plant, emps_dir, emps_plant  # noqa: E402
 
 from drivectl.plant_emulator.models import PlantSpec  # noqa: E402
-from drivectl.tools.explain import explain  # noqa: E402
-from drivectl.tools.explain_data import gaps_of, prepare  # noqa: E402
-from drivectl.tools.trace import Trace  # noqa: E402
+from drivectl.tools.explain.core import explain  # noqa: E402
+from drivectl.tools.explain.data import gaps_of, prepare  # noqa: E402
+from drivectl.tracefile.format import Trace  # noqa: E402
 
 EMPS = emps_dir()
 pytestmark = pytest.mark.skipif(EMPS is None, reason="EMPS records absent (set DRIVECTL_EMPS_DIR)")

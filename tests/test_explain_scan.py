@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from drivectl.tools.explain_fit import _refine_wavenumber, _scan_power
+from drivectl.tools.explain.fit import _refine_wavenumber, _scan_power
 
 
 def _direct(q: np.ndarray, res: np.ndarray, ks: np.ndarray) -> np.ndarray:

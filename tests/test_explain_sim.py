@@ -1,4 +1,4 @@
-"""The batch kernel of `drivectl explain` (tools/explain_sim.py): whole cycles in closed form equal the
+"""The batch kernel of `drivectl explain` (tools/explain/sim.py): whole cycles in closed form equal the
 substeps, a batch equals its members run alone, and both equal Plant.step.
 
 No trace recording here: an open-loop effort with reversals, stops and dwells (where Coulomb friction
@@ -12,8 +12,8 @@ import pytest
 from scipy.linalg import expm
 
 from drivectl.plant_emulator.models import PlantSpec, load_plant
-from drivectl.tools import explain_sim
-from drivectl.tools.explain_sim import BatchSim, make_windows
+from drivectl.tools.explain import sim as explain_sim
+from drivectl.tools.explain.sim import BatchSim, make_windows
 
 DT = 0.001
 BASE = load_plant("rigid-x")
@@ -155,7 +155,7 @@ def test_two_bodies_equal_plant_step(data, spec):
 @pytest.mark.parametrize("load,workers", [(0.0, 2), (1.0, 2), (1.4, 2), (1.6, 1), (3.5, 1)])
 def test_workers_follow_the_free_cores(monkeypatch, load, workers):
     """Two cores: a pool while at most one other job runs (load <= 1.5), else one process."""
-    from drivectl.tools import explain
+    from drivectl.tools.explain import core as explain
 
     monkeypatch.delenv("DRIVECTL_EXPLAIN_WORKERS", raising=False)
     monkeypatch.setattr(explain.os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)

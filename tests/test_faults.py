@@ -7,16 +7,16 @@ import pytest
 from helpers import reset_fault
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import Channel, LimitError, StopReason, run_channels
+from drivectl.controllers.runtime.servo import Channel, LimitError, StopReason, run_channels
 from drivectl.driver import cia402
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.plant_emulator.faults import KINDS, FaultInjector, FaultSpec, FaultSpecError, parse_fault
 from drivectl.profiles.library import load_profile
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
-from drivectl.tools.fault_matrix import CASES, SAFE_BOUND_CYCLES, run_case
-from drivectl.tools.machine import open_machine
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tools.conformance.fault_matrix import CASES, SAFE_BOUND_CYCLES, run_case
+from drivectl.tracefile.format import Trace
 
 
 def test_the_matrix_covers_every_kind():

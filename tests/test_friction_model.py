@@ -12,8 +12,8 @@ from dataclasses import replace
 import numpy as np
 
 from drivectl.plant_emulator.models import load_plant
-from drivectl.tools.cli import main
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 STRIBECK = "stribeck:excess_force=15,velocity=0.002"
 
@@ -39,7 +39,7 @@ def test_the_model_augmented_with_stribeck_cuts_the_error_threefold(tmp_path):
 
 
 def test_with_force_noise_a_stiffer_mbc_still_gains_threefold(tmp_path):
-    from drivectl.tools.config import DEFAULT_CONFIG_TOML
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
 
     cfg = tmp_path / "m.toml"
     cfg.write_text(DEFAULT_CONFIG_TOML.replace('controller = "asmc"', 'controller = "mbc"', 1)

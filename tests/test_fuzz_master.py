@@ -14,11 +14,11 @@ import can
 import pytest
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import SAFE_STATES, Channel, StopReason, run_channels
+from drivectl.controllers.runtime.servo import SAFE_STATES, Channel, StopReason, run_channels
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import load_config
 from drivectl.profiles.library import load_profile
-from drivectl.tools.config import load_config
-from drivectl.tools.machine import open_machine
 
 NODE = 1
 #: every malformed kind the master can meet from its drive, the bus, or another node

@@ -13,19 +13,19 @@ import canopen
 import pytest
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.run_checks import Assessment, JumpState, RunChecks, assess, position_jump
-from drivectl.controllers.safe_stop import MAY_BE_POWERED, stop_axes
-from drivectl.controllers.servo import SAFE_STATES, Channel, run_channels
+from drivectl.controllers.runtime.run_checks import Assessment, JumpState, RunChecks, assess, position_jump
+from drivectl.controllers.runtime.safe_stop import MAY_BE_POWERED, stop_axes
+from drivectl.controllers.runtime.servo import SAFE_STATES, Channel, run_channels
 from drivectl.driver.cia301 import SYNC_COB_ID
 from drivectl.driver.cia402 import PowerState
 from drivectl.driver.network import close_threaded, open_bus, threaded_network, unique_virtual_channel
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
 from drivectl.profiles.library import load_profile
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
-from drivectl.tools.fault_matrix import SAFE_BOUND_CYCLES, run_case
-from drivectl.tools.machine import open_machine
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tools.conformance.fault_matrix import SAFE_BOUND_CYCLES, run_case
+from drivectl.tracefile.format import Trace
 
 
 def _run(cfg, spec: str, duration: float = 0.5):

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from drivectl.plant_emulator.models import load_plant
-from drivectl.tools.bode import model_frf
-from drivectl.tools.cli import main
-from drivectl.tools.identify_two_mass import combinations, fit_two_mass
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tools.commissioning.bode import model_frf
+from drivectl.tools.commissioning.identify_two_mass import combinations, fit_two_mass
+from drivectl.tracefile.format import Trace
 
 # the machine differs from its model: masses, stiffness and damping each 10 % off
 PERTURBED = {"m1": 1.1, "m2": 0.9, "k": 1.1, "n": 0.9}

@@ -12,15 +12,15 @@ import threading
 import pytest
 from helpers import PdController, SineProfile
 
-from drivectl.controllers.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import Channel, Limits, StopReason, run, run_channels
+from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
+from drivectl.controllers.runtime.servo import Channel, Limits, StopReason, run, run_channels
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import load_config
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.library import load_profile
-from drivectl.tools.config import load_config
-from drivectl.tools.machine import open_machine
 
 DT = 0.001
 
@@ -130,7 +130,7 @@ def test_handlers_are_restored_after_the_block_even_on_error():
 def test_second_signal_says_stopping_third_kills():
     code = textwrap.dedent("""
         import signal, sys
-        from drivectl.controllers.interrupt import stop_on_signals
+        from drivectl.controllers.runtime.interrupt import stop_on_signals
         with stop_on_signals() as request:
             for n in (1, 2, 3):
                 signal.raise_signal(signal.SIGINT)
@@ -147,8 +147,8 @@ def test_identify_interrupted_during_set_up_moves_nothing_and_exits_130(tmp_path
     """The command routes the signals for its whole length: a signal after the bus is set up and
     before the identification run is seen by the run before it enables anything (a run's own routing
     would have missed it, and the run would have gone ahead)."""
-    from drivectl.controllers import servo
-    from drivectl.tools.cli import main
+    from drivectl.controllers.runtime import servo
+    from drivectl.tools.cli.main import main
 
     real_run, calls = servo.run, []
 
@@ -171,7 +171,7 @@ def test_identify_interrupted_during_set_up_moves_nothing_and_exits_130(tmp_path
 
 def test_ctrl_c_in_offline_work_is_one_line_and_130(tmp_path, capsys, monkeypatch):
     """Where no drive is involved (tune's search, explain, plot) Ctrl-C ends the work at once."""
-    from drivectl.tools import cli
+    from drivectl.tools.cli import main as cli
 
     def interrupted(args):
         raise KeyboardInterrupt

@@ -10,9 +10,9 @@ import pytest
 from drivectl.controllers.learning import LearnedFeedforward
 from drivectl.driver.axis import Feedback
 from drivectl.profiles.base import Reference
-from drivectl.tools.cli import main
-from drivectl.tools.learn import LearnedCorrection
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tools.commissioning.learn import LearnedCorrection
+from drivectl.tracefile.format import Trace
 
 # x under paper 004's ASMC (law 14, its default) believing the y axis's model (mass +11 %, friction +20 %):
 # a repeating error to learn (x's default mbc, with integral action, leaves 2.6 um RMS there, not tens)
@@ -143,8 +143,8 @@ def test_repetitions_over_the_bus_equal_simaxis(tmp_path, capsys):
 
 def test_a_repetition_stopped_by_a_limit_reports_what_the_drive_said(tmp_path, capsys):
     """The end state comes from the drive's reports after the stop, never a fixed sentence."""
-    from drivectl.tools.cli import main
-    from drivectl.tools.config import DEFAULT_CONFIG_TOML
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+    from drivectl.tools.cli.main import main
 
     cfg = tmp_path / "tight.toml"
     cfg.write_text(DEFAULT_CONFIG_TOML.replace("following_error_m = 0.001       # window",

@@ -14,7 +14,7 @@ from drivectl.controllers.linear_model import LinearModel
 from drivectl.controllers.mbc import Mbc
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.robust import check_corners, corners, spectral_radius
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
 from drivectl.profiles.ptp import PointToPoint

@@ -9,22 +9,22 @@ import pytest
 from helpers import reset_fault
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import Channel, StopReason, run_channels
+from drivectl.controllers.runtime.servo import Channel, StopReason, run_channels
 from drivectl.driver import cia402
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
 from drivectl.driver.cia301 import RPDO_BASE
 from drivectl.driver.cia402 import Command, PowerState
 from drivectl.driver.network import Lockstep, LockstepNetwork, open_bus, unique_virtual_channel
 from drivectl.driver.units import EffortScale, Encoder
+from drivectl.machine.build import open_machine
+from drivectl.machine.bus_budget import axes_per_bus, bus_load
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.plant_emulator.faults import parse_fault
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.node402 import EMULATED_DRIVE_EDS, EmulatedDrive
 from drivectl.profiles.library import load_profile
-from drivectl.tools.bus_budget import axes_per_bus, bus_load
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
-from drivectl.tools.machine import open_machine
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 DT = 0.001
 

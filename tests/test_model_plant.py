@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 
+from drivectl.machine.build import model_specs, plant_specs, with_model
+from drivectl.machine.config import ConfigError, load_config
 from drivectl.plant_emulator.models import PlantError, load_plant
-from drivectl.tools.cli import main
-from drivectl.tools.config import ConfigError, load_config
-from drivectl.tools.machine import model_specs, plant_specs, with_model
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 CONFIG = """\
 [axes.x]

@@ -142,7 +142,7 @@ def test_two_mass_is_linear_so_one_substep_is_exact():
 def test_rigid_substep_halving_changes_tracking_by_less_than_one_percent():
     from helpers import PdController, SineProfile
 
-    from drivectl.controllers.servo import run
+    from drivectl.controllers.runtime.servo import run
     from drivectl.plant_emulator.sim_axis import SimAxis
 
     errs = []
@@ -204,7 +204,7 @@ def test_seed_000_tracking_error_is_independent_of_substeps():
     # the issue's accuracy criterion on paper 000's scenario: halving the substeps changes the
     # max tracking error of PID-NFTSM by < 1 % (the linear part is exact, so it barely moves)
     from drivectl.controllers.pid_nftsm import TdePidNftsm
-    from drivectl.controllers.servo import run
+    from drivectl.controllers.runtime.servo import run
     from drivectl.plant_emulator.sim_axis import SimAxis
     from drivectl.profiles.ptp import PointToPoint
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML
-from drivectl.tools.trace import Trace
+from drivectl.machine.config import DEFAULT_CONFIG_TOML
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 SIM = ["trace", "--axis", "x", "--duration", "0.02", "--no-plot", "--quiet", "--sim"]
 BUS = ["trace", "--axis", "x", "--duration", "0.02", "--no-plot", "--quiet"]
@@ -109,7 +109,7 @@ def test_controller_override_keeps_the_settings_that_apply_and_names_the_dropped
 
 def test_a_trace_lost_after_the_run_is_one_line_and_exit_1(tmp_path, capsys, monkeypatch):
     """The disk fills between the checks and the end of the run: the run is reported, the loss named."""
-    from drivectl.tools import trace_stream
+    from drivectl.tracefile import stream as trace_stream
 
     def full(folder, trace, **kw):
         raise trace_stream.TraceWriteError(f"{folder}/x-1.csv.partial: trace incomplete: No space left on device "

@@ -7,13 +7,13 @@ import pytest
 from helpers import SimWallClock
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.run_checks import RunChecks, RunGuard
-from drivectl.controllers.servo import Channel, Pacer, StopReason, run_channels
+from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
+from drivectl.controllers.runtime.servo import Channel, Pacer, StopReason, run_channels
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.profiles.library import load_profile
-from drivectl.tools.cli import main
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
-from drivectl.tools.machine import open_machine
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tracefile.format import Trace
 
 
 class _Axis:

@@ -1,4 +1,4 @@
-"""tools/savgol.py: scipy.signal's Savitzky-Golay (mode "interp") without importing scipy.signal."""
+"""tools/explain/savgol.py: scipy.signal's Savitzky-Golay (mode "interp") without importing scipy.signal."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from scipy.signal import savgol_coeffs as scipy_coeffs
 from scipy.signal import savgol_filter as scipy_filter
 
-from drivectl.tools.savgol import savgol_coeffs, savgol_filter
+from drivectl.tools.explain.savgol import savgol_coeffs, savgol_filter
 
 
 @pytest.mark.parametrize("n", [15, 16, 400])

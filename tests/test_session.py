@@ -1,7 +1,7 @@
 """Issue 15 points 2-5: the resident loop and the Python API, against the emulated drives.
 
 Lockstep clock (simulated time, deterministic) unless a test says otherwise; every connect() opens its
-own virtual channel (tools/machine.py: unique_virtual_channel)."""
+own virtual channel (machine/build.py: unique_virtual_channel)."""
 
 from __future__ import annotations
 
@@ -13,14 +13,14 @@ import pytest
 from helpers import enabled_wall_loop
 
 import drivectl
-from drivectl.controllers.capture import CaptureError
-from drivectl.controllers.loop import MotionFault
-from drivectl.controllers.servo import LimitError
+from drivectl.controllers.runtime.capture import CaptureError
+from drivectl.controllers.runtime.loop import MotionFault
+from drivectl.controllers.runtime.servo import LimitError
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.config import DEFAULT_CONFIG_TOML, parse_config
-from drivectl.tools.trace import Trace
+from drivectl.tracefile.format import Trace
 
 
 def config(controller: str = "pid-dob", **motion: float):
@@ -355,10 +355,10 @@ def test_homing_switch_not_found_is_one_error(tmp_path):
 
 def test_approach_plans_a_visible_move_to_the_profile_start_and_the_run_follows():
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Channel, plan_run, run_channels
+    from drivectl.controllers.runtime.servo import Channel, plan_run, run_channels
     from drivectl.plant_emulator.models import load_plant
     from drivectl.plant_emulator.sim_axis import SimAxis
-    from drivectl.tools.approach import consent, plan_approach, where_axes_stand
+    from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand
 
     cfg = config()
     spec = load_plant("rigid-x")
@@ -386,9 +386,9 @@ def test_a_stalled_wall_clock_loop_is_a_fault_and_stops_the_axis():
     """The stall is injected through the loop's clock (a jump of 10 s between two cycles), so the
     outcome does not depend on how busy the machine is."""
 
-    from drivectl.controllers.loop import AxisState
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import Channel
+    from drivectl.controllers.runtime.loop import AxisState
+    from drivectl.controllers.runtime.servo import Channel
     from drivectl.plant_emulator.models import load_plant
     from drivectl.plant_emulator.sim_axis import SimAxis
 
@@ -455,9 +455,9 @@ def test_a_drive_that_does_not_confirm_the_disable_is_named_on_close(tmp_path, c
 def test_identify_refuses_an_axis_away_from_its_start_without_approach(monkeypatch):
     """identify opens the axis where its identification profile starts; a drive standing elsewhere
     (as across processes) is shown the approach and, with --no-approach, refused before it moves."""
-    from drivectl.tools import machine as machine_module
-    from drivectl.tools.commission import identify_axis
-    from drivectl.tools.config import load_config
+    from drivectl.machine import build as machine_module
+    from drivectl.machine.config import load_config
+    from drivectl.tools.commissioning.commands import identify_axis
 
     opened = []
     real = machine_module.open_machine
@@ -478,10 +478,10 @@ def test_a_resident_run_gives_the_controller_the_preview_a_trace_gives(tmp_path)
     # a one-shot trace). The resident loop's run must give it the same preview: without it mbc extrapolates
     # the reference (0.65 um max, 0.14 um rms here against the trace's 0.50 / 0.073)
     from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.servo import run
+    from drivectl.controllers.runtime.servo import run
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
     from drivectl.plant_emulator.models import load_plant
-    from drivectl.tools.config import load_config
-    from drivectl.tools.machine import open_machine
 
     cfg = load_config()
     assert cfg.axis("z").controller == "mbc"

@@ -14,8 +14,8 @@ import pytest
 
 import drivectl
 from drivectl.driver.cia402 import PowerState
-from drivectl.tools.config import load_config
-from drivectl.tools.trace import Trace
+from drivectl.machine.config import load_config
+from drivectl.tracefile.format import Trace
 
 CONFIG = """
 cycle_s = 0.001

@@ -10,9 +10,9 @@ import sys
 
 import pytest
 
-from drivectl.tools.cli import main
-from drivectl.tools.quantity import QuantityError, parse_quantity
-from drivectl.tools.trace import Trace
+from drivectl.tools.cli.main import main
+from drivectl.tools.cli.quantity import QuantityError, parse_quantity
+from drivectl.tracefile.format import Trace
 
 
 def shell(monkeypatch, capsys, script: str, *args: str) -> tuple[int, list[str], str]:
@@ -101,7 +101,7 @@ def test_relative_run_and_plot(monkeypatch, capsys, tmp_path):
 def test_ctrl_c_during_a_move_stops_the_axis_and_keeps_the_session(tmp_path):
     script = "enable x\nmove x 90mm speed=1mm/s &\nwait 100s\nstatus x\nexit\n"
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "drivectl.tools.cli", "shell", "--axis", "x", "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl.tools.cli.main", "shell", "--axis", "x", "--out",
                              str(tmp_path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
     assert proc.stdin is not None and proc.stdout is not None
@@ -132,7 +132,7 @@ def test_shell_refuses_a_bad_axis_flag_before_connecting(monkeypatch, capsys):
 
 
 def test_live_view_is_quiet_when_output_is_not_a_terminal():
-    from drivectl.tools.live import QuietView, open_live_view
+    from drivectl.tools.cli.live import QuietView, open_live_view
 
     assert isinstance(open_live_view(object(), io.StringIO()), QuietView)
 
@@ -144,7 +144,7 @@ def test_the_live_window_draws_what_it_is_fed(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
-    from drivectl.tools.live import window_main
+    from drivectl.tools.cli.live import window_main
 
     q = mp.get_context("spawn").Queue()
     for k in range(5):
@@ -164,7 +164,7 @@ def test_live_channels_are_chosen_and_checked(monkeypatch, capsys, tmp_path):
 
 def test_the_status_line_shows_the_chosen_channels(tmp_path):
     import drivectl
-    from drivectl.tools.live import StatusLine
+    from drivectl.tools.cli.live import StatusLine
 
     buf = io.StringIO()
     with drivectl.connect(axes=["x"], fault_dir=tmp_path) as m:

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from helpers import PdController, SineProfile
 
-from drivectl.controllers.servo import LimitError, Limits, StopReason, run
+from drivectl.controllers.runtime.servo import LimitError, Limits, StopReason, run
 from drivectl.driver.axis import Axis, AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.sim_axis import SimAxis
-from drivectl.tools import metrics
-from drivectl.tools.trace import REQUIRED, Trace, TraceError
+from drivectl.tracefile import metrics
+from drivectl.tracefile.format import REQUIRED, Trace, TraceError
 
 DT = 0.001
 

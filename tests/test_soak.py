@@ -4,7 +4,7 @@ no hang (faulthandler guard)."""
 
 from __future__ import annotations
 
-from drivectl.tools.soak import SOAK_FAULTS, run_soak
+from drivectl.tools.conformance.soak import SOAK_FAULTS, run_soak
 
 
 def test_short_soak_accounts_for_every_fault(tmp_path):

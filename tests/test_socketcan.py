@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from drivectl.controllers.registry import make_controller
-from drivectl.controllers.servo import run
+from drivectl.controllers.runtime.servo import run
+from drivectl.machine.build import open_machine
+from drivectl.machine.config import BusConfig, load_config
 from drivectl.plant_emulator.models import load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
 from drivectl.profiles.ptp import PointToPoint
-from drivectl.tools.config import BusConfig, load_config
-from drivectl.tools.machine import open_machine
 
 CHANNEL = os.environ.get("DRIVECTL_SOCKETCAN", "vcan0")
 

@@ -9,7 +9,7 @@ import subprocess
 import sys
 import time
 
-from drivectl.tools.trace import Trace
+from drivectl.tracefile.format import Trace
 
 
 def test_sigkill_mid_run_leaves_a_readable_partial_trace(tmp_path):
@@ -40,7 +40,7 @@ def test_sigkill_mid_run_leaves_a_readable_partial_trace(tmp_path):
 
 
 def test_a_completed_run_streams_to_a_new_name_and_x_csv_is_the_latest(tmp_path, capsys):
-    from drivectl.tools.cli import main
+    from drivectl.tools.cli.main import main
 
     out = tmp_path / "out"
     wrote = []
@@ -62,7 +62,7 @@ def test_references_sampled_chunk_by_chunk_equal_the_profile_and_keep_false_stre
     import numpy as np
     from helpers import PdController, SineProfile
 
-    from drivectl.controllers.servo import REF_CHUNK, Channel, Limits, plan_run, run_channels
+    from drivectl.controllers.runtime.servo import REF_CHUNK, Channel, Limits, plan_run, run_channels
     from drivectl.plant_emulator.models import load_plant
     from drivectl.plant_emulator.sim_axis import SimAxis
 
@@ -86,7 +86,7 @@ def test_a_streamed_run_has_no_one_hour_cap_and_its_limit_check_is_windowed():
     import pytest
     from helpers import PdController, SineProfile
 
-    from drivectl.controllers.servo import REF_CHUNK, Channel, LimitError, Limits, plan_run
+    from drivectl.controllers.runtime.servo import REF_CHUNK, Channel, LimitError, Limits, plan_run
     from drivectl.plant_emulator.models import load_plant
     from drivectl.plant_emulator.sim_axis import SimAxis
 

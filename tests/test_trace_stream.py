@@ -1,4 +1,4 @@
-"""Issue 18 points 5 and 7: the streamed trace (tools/trace_stream.py, docs/trace-format.md) and the
+"""Issue 18 points 5 and 7: the streamed trace (tracefile/stream.py, docs/trace-format.md) and the
 readers that refuse what they cannot read right.
 
 No sleeps decide anything here: the writer is synchronised with :meth:`TraceWriter.flush`, the killed
@@ -19,8 +19,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from drivectl.tools.trace import END_MARKER, Trace, TraceError
-from drivectl.tools.trace_stream import TraceWriteError, TraceWriter, clean_stale, safe_name, write_trace
+from drivectl.tracefile.format import END_MARKER, Trace, TraceError
+from drivectl.tracefile.stream import TraceWriteError, TraceWriter, clean_stale, safe_name, write_trace
 
 COLS = ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")
 META = {"axis": "x", "effort_unit": "N", "dt_s": 0.001}
@@ -122,7 +122,7 @@ def test_a_write_error_stops_the_writing_not_the_loop(tmp_path):
 
 KILLED = textwrap.dedent("""
     import sys, time
-    from drivectl.tools.trace_stream import TraceWriter
+    from drivectl.tracefile.stream import TraceWriter
     w = TraceWriter(sys.argv[1], "x", columns=("time_s", "ref_m", "pos_m", "effort"),
                     meta={"axis": "x", "dt_s": 0.001, "effort_unit": "N"}, block_rows=256).start()
     for k in range(3000):

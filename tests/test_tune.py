@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from drivectl.controllers.registry import controller_class
-from drivectl.tools.config import load_config
-from drivectl.tools.tune import TUNED_GAINS, add_tune_parser, cmd_tune, tune
+from drivectl.machine.config import load_config
+from drivectl.tools.commissioning.tune import TUNED_GAINS, add_tune_parser, cmd_tune, tune
 
 
 @pytest.fixture(autouse=True)
@@ -130,7 +130,7 @@ def test_robust_search_rejects_candidates_unstable_on_a_corner() -> None:
     assert res.corners == 8 and res.unstable >= 1
     assert np.isinf(res.costs).sum() >= res.unstable
     assert float(np.min(res.costs)) <= res.costs[0]
-    from drivectl.tools.tune import report
+    from drivectl.tools.commissioning.tune import report
 
     assert "8 +-10 % corners" in report(res)
 
@@ -157,8 +157,8 @@ def test_bad_input_exit_2_one_line(tmp_path, capsys, argv) -> None:
 
 
 def test_tune_with_another_controller_keeps_the_settings_it_also_takes(tmp_path):
-    from drivectl.tools.config import DEFAULT_CONFIG_TOML, load_config
-    from drivectl.tools.tune import starting_gains
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
+    from drivectl.tools.commissioning.tune import starting_gains
 
     cfg_file = tmp_path / "m.toml"
     text = DEFAULT_CONFIG_TOML

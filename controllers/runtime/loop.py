@@ -1,0 +1,827 @@
+"""The resident servo loop: one object owns the axes of a machine and closes their loops every cycle.
+
+In cyclic synchronous torque the host *is* the position controller, so an enabled axis needs a loop
+that runs as long as it is enabled. :class:`ServoLoop` cycles every axis of the machine (SYNC, TPDOs,
+RPDOs: the bus and the drives' watchdogs stay fed while any is enabled, and while none is) and, for
+each enabled axis, runs the same three calls as a trace run (controllers/runtime/servo.py): ``sample_axis``
+-> ``control`` -> ``check_and_write``. The reference of an enabled axis comes from its
+:class:`~drivectl.controllers.runtime.motion.Trajectory` (hold, move, jog, stop: ruckig) or from a profile
+being run; an axis with nothing to do holds its position under its controller.
+
+Two clocks, chosen when the loop is made:
+
+* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (paced as ``trace --paced``:
+  :class:`~drivectl.controllers.runtime.servo.Pacer`), so that nothing a user or a program does delays a
+  cycle. Missed deadlines and the worst lateness are counted all the time (``status()``). A cycle that
+  starts later than ``stall_s`` after the previous one is a stall: a fault (quick stop); a watchdog
+  thread sends the quick stop itself when the loop thread does not come back at all, and the drive's
+  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies. The
+  in-process emulated drives run on this loop's clock meanwhile (as across processes), so a loop later
+  than the RPDO deadline is caught by the drive as a real one would catch it.
+* ``"lockstep"``: no thread; time is the cycle count and advances only when the caller runs cycles
+  (:meth:`ServoLoop.step`, :meth:`ServoLoop.run_until`, a handle's ``wait``). Deterministic: the same
+  commands give the same trace bit for bit (tests, CI on the emulated drives).
+
+A fault on any axis (a drive fault, lost TPDOs, a limit, a stall) quick-stops every axis of the loop
+(``_safe_stop``: verified from the drives' reports), fails the handles of the moves under way with
+that fault, and completes every capture armed on the fault trigger (the ring's last samples, written
+to ``fault_dir`` as a trace v1: the last seconds before any fault are on disk).
+
+The garbage collector is kept out of the cycle in wall mode: the heap is frozen when the thread
+starts (``gc.freeze``), automatic collection is off while it runs, and the loop collects the young
+generation itself in the slack after a cycle's write. ``cpu`` pins the loop thread to a CPU and
+``realtime`` asks for SCHED_FIFO where the OS allows it; the interpreter's switch interval is a tenth
+of a cycle while the loop runs (a thread beside it, a program plotting, gives the GIL up within that,
+not after Python's default 5 ms); ``status()`` says what was granted.
+"""
+
+from __future__ import annotations
+
+import collections
+import gc
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivectl.controllers.base import Controller
+from drivectl.controllers.runtime.capture import CHANNELS, Capture, Ring, Trigger
+from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
+from drivectl.controllers.runtime.servo import (
+    SAFE_STATES,
+    STATE_CHANGE_CYCLES,
+    Channel,
+    CycleFault,
+    Fault,
+    Limits,
+    Pacer,
+    StopReason,
+    _pace_axes,
+    _safe_stop,
+    check_and_write,
+    control,
+    sample_axis,
+)
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
+from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.profiles.base import Reference
+
+CLOCKS = ("lockstep", "wall")
+
+
+class AxisState(Enum):
+    OFF = "off"  # not enabled (the drive may be in any state but Operation Enabled)
+    ENABLING = "enabling"  # asked to enable; servoing from the cycle the drive reports Operation Enabled
+    SERVO = "servo"  # enabled, its loop closed every cycle
+
+
+class MotionFault(RuntimeError):
+    """A move ended in a fault; ``fault`` says which (kind, axis, cycle, statusword, 0x603F, safe state)."""
+
+    def __init__(self, message: str, fault: Fault | None):
+        super().__init__(message)
+        self.fault = fault
+
+
+class Move:
+    """A handle on a command given to the loop (move, jog, stop, home, run): ``wait()`` for its end.
+
+    ``status``: pending (not yet taken by the loop), moving, settling (the reference arrived, the axis
+    is getting into position), done, stopped (replaced by another command, stopped, or the axis
+    disabled), fault. After the end: ``position`` and ``following_error`` (m) at the end, ``settled``
+    (in position within the window), ``cycles`` it took, ``trace`` (a run's record)."""
+
+    def __init__(self, loop: ServoLoop, axis: str, kind: str, target: float | None = None):
+        self.loop = loop
+        self.axis = axis
+        self.kind = kind
+        self.target = target
+        self.status = "pending"
+        self.detail = ""
+        self.fault: Fault | None = None
+        self.position: float | None = None
+        self.following_error: float | None = None
+        self.settled = False
+        self.cycles = 0
+        self._run: ProfileRun | None = None  # a run's record, once it ended
+        self._trace_fn: Callable[[Move], Any] | None = None
+        self._trace: Any = None
+        self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
+        self.path: Path | None = None  # where a streamed run's trace was written
+        self.record_error = ""
+        #: what the loop starts when this ends done (a run after its approach move)
+        self._then: Callable[[], None] | None = None
+        self._done = threading.Event()
+        self._in_position = 0
+        self._settle_cycles = 0
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def _end(self, status: str, rt: AxisRuntime | None = None, detail: str = "", fault: Fault | None = None) -> None:
+        if self._done.is_set():
+            return
+        self.status, self.detail, self.fault = status, detail, fault
+        if rt is not None:
+            self.position = rt.position
+            self.following_error = rt.following_error
+        self._done.set()
+
+    @property
+    def trace(self) -> Any:
+        """A run's record (trace v1), once it ended; None for other commands."""
+        if self._trace is None and self._run is not None and self._trace_fn is not None:
+            self._trace = self._trace_fn(self)
+        return self._trace
+
+    def wait(self, timeout: float | None = None) -> Move:
+        """Block until the command ended (lockstep: run the cycles, ``timeout`` in simulated s; wall:
+        ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
+        TimeoutError when it has not ended within ``timeout``."""
+        if not self.loop.wait_until(self._done.is_set, timeout):
+            if self.loop.error is not None:
+                raise AxisError(f"axis {self.axis}: {self.kind}: the servo loop ended ({self.loop.error!r}); the "
+                                "drives' own watchdogs stop the axes")
+            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
+            raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
+        self._close_record()
+        if self.status == "fault":
+            raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
+        return self
+
+    def _close_record(self) -> None:
+        """A streamed run's file: closed (trailer, rename) on the waiting side, never in the cycle."""
+        writer, self._writer = self._writer, None
+        if writer is None:
+            return
+        trailer = {"stop": self.status, "cycles": str(self._run.k if self._run else 0)}
+        if self.detail:
+            trailer["stop_detail"] = self.detail
+        if self.fault is not None:
+            trailer.update(self.fault.meta())
+        try:
+            self.path = writer.close(trailer)
+        except Exception as exc:  # noqa: BLE001 - the run's end is reported all the same
+            self.record_error = str(exc)
+
+    def __repr__(self) -> str:
+        where = f" at {self.position * 1e3:.6f} mm" if self.position is not None else ""
+        return f"<Move {self.kind} axis {self.axis}: {self.status}{where}>"
+
+
+@dataclass
+class ProfileRun:
+    """A profile being run on one axis: its samples, indexed per cycle; recorded into ``rec``."""
+
+    refs: list[list[float]]  # r, r', r'', r''' per cycle (offset applied)
+    n: int
+    k: int = 0
+    rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
+    #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
+    append: Callable[..., None] | None = None
+
+    def __post_init__(self) -> None:
+        self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
+
+    def next(self) -> Reference:
+        k = self.k if self.k < self.n else self.n - 1
+        pr, vr, ar, jr = self.refs
+        if self.k >= self.n:
+            return Reference(pr[k])
+        return Reference(pr[k], vr[k], ar[k], jr[k])
+
+
+class AxisRuntime:
+    """One axis in the loop: its channel (axis, controller, limits), its reference and its state."""
+
+    def __init__(self, channel: Channel, motion: MotionLimits, ring_size: int):
+        self.ch = channel
+        self.name = channel.axis.name
+        self.motion = motion
+        self.traj = Trajectory(channel.axis.dt, motion)
+        self.state = AxisState.OFF
+        self.offset = 0.0  # drive position - axis position (set by homing)
+        self.position = math.nan  # m, axis coordinates (offset applied)
+        self.velocity = math.nan
+        self.reference = math.nan
+        self.following_error = 0.0
+        self.effort = 0.0
+        self.servo_k = 0  # cycles since it was enabled (what the limit checks count)
+        self.handle: Move | None = None
+        self.run: ProfileRun | None = None
+        self.jog_until = 0  # loop cycle at which an unrenewed jog stops (0: no jog)
+        self.move_started = False
+        self.ring = Ring(ring_size)
+        self.captures: list[Capture] = []
+        self.fault: Fault | None = None
+        self.read_error: str = ""
+        self.enable_failed = ""
+
+
+class ServoLoop:
+    """The resident loop over ``channels`` (one per axis; their ``profile`` is not used)."""
+
+    def __init__(
+        self,
+        channels: list[Channel],
+        motion: dict[str, MotionLimits] | None = None,
+        *,
+        clock: str = "lockstep",
+        stall_s: float = 0.05,
+        ring_s: float = 5.0,
+        fault_dir: str | Path | None = None,
+        gc_control: bool = True,
+        gil_switch: bool = True,
+        cpu: int | None = None,
+        realtime: bool = False,
+        io_lock: threading.RLock | None = None,
+        now: Callable[[], float] = time.perf_counter,
+        meta: dict[str, dict[str, str]] | None = None,
+    ):
+        if clock not in CLOCKS:
+            raise ValueError(f"loop: clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
+        if not channels:
+            raise ValueError("loop: no axes")
+        if not (math.isfinite(stall_s) and stall_s > 0):
+            raise ValueError(f"loop: stall_s: must be > 0, got {stall_s!r}")
+        self.dt = channels[0].axis.dt
+        self.clock = clock
+        self.stall_s = stall_s
+        self.fault_dir = Path(fault_dir) if fault_dir is not None else None
+        self.gc_control = gc_control
+        #: shorten the interpreter's switch interval while the wall-clock loop runs (see _take_switch)
+        self.gil_switch = gil_switch
+        self._switch_taken = False
+        self.cpu = cpu
+        self.realtime = realtime
+        self.meta = meta or {}
+        motion = motion or {}
+        ring = max(2, int(round(ring_s / self.dt)))
+        self.axes: dict[str, AxisRuntime] = {
+            ch.axis.name: AxisRuntime(ch, motion.get(ch.axis.name, MotionLimits()), ring) for ch in channels}
+        self._rts = list(self.axes.values())
+        self._channels = [rt.ch for rt in self._rts]
+        #: every bus access of the user's side (SDO) takes it; the loop holds it during a cycle
+        self.io_lock = io_lock or threading.RLock()
+        self._inbox: collections.deque[Callable[[], None]] = collections.deque()
+        self._now = now
+        self.cycle = 0  # loop cycles run
+        self.missed = 0
+        self.worst_late = 0.0
+        self.stalls = 0
+        self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
+        self.skipped = 0  # slots skipped because the loop was that far behind
+        self.gc_runs = 0
+        self.gc_worst = 0.0
+        self.granted: dict[str, str] = {}
+        self.faults: list[Fault] = []
+        self.command_errors: list[str] = []  # commands that raised in the loop (kept for status)
+        self.fault_files: list[Path] = []
+        self._thread: threading.Thread | None = None
+        self._watchdog: threading.Thread | None = None
+        self._closing = False
+        self._closed = threading.Event()
+        self._last_cycle_t: float | None = None
+        self._stalled = False
+        self._writer: threading.Thread | None = None
+        self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
+        self._gc_taken = False  # this loop holds the process's collector (wall clock)
+        self.error: BaseException | None = None  # what killed the loop thread, if anything
+        #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
+        self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
+
+    # -- lifetime ---------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Wall clock: start the loop thread (and its watchdog). Lockstep: take the first sample."""
+        if self.clock == "lockstep":
+            self._cycle_all()
+            return
+        self._thread = threading.Thread(target=self._thread_main, name="drivectl-servo-loop", daemon=True)
+        self._thread.start()
+        self._watchdog = threading.Thread(target=self._watchdog_main, name="drivectl-loop-watchdog", daemon=True)
+        self._watchdog.start()
+        if not self.run_until(lambda: self.cycle > 0, 2.0):
+            raise AxisError(f"loop: no cycle within 2 s of starting ({self.error or 'the loop thread hangs'})")
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def close(self, timeout: float = 2.0) -> dict[str, str]:
+        """Disable every axis (verified from the drives' reports), stop the loop. Returns, per axis, the
+        power state the drive reported last ("unknown" where it never answered)."""
+        states: dict[str, str] = {}
+        try:
+            if self._thread is None or self.running:
+                for rt in self._rts:
+                    self.submit(lambda rt=rt: self._disable(rt, "the machine closed"))
+                self.run_until(lambda: all(rt.ch.axis.power not in _ENABLED for rt in self._rts),
+                               timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
+        finally:
+            self._closing = True
+            self._closed.set()
+            if self._thread is not None:
+                self._thread.join(timeout)
+            if self._watchdog is not None:
+                self._watchdog.join(timeout)
+            for rt in self._rts:
+                for cap in rt.captures:
+                    cap.cancel("the machine closed before it completed")
+                rt.captures.clear()
+            self.flush()
+            if self._gc_taken:
+                _release_gc()
+                self._gc_taken = False
+            if self._switch_taken:
+                _release_switch()
+                self._switch_taken = False
+            for rt in self._rts:
+                rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
+        for rt in self._rts:
+            axis = rt.ch.axis
+            if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
+                _quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+            states[rt.name] = axis.power.value
+        return states
+
+    def flush(self, timeout: float | None = 30.0) -> list[Path]:
+        """Wait for the fault captures being written; returns every file written so far."""
+        if self._writer is not None:
+            self._writer.join(timeout)
+        return list(self.fault_files)
+
+    # -- commands (any thread) -------------------------------------------------------------------------
+    def submit(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` in the loop at the next cycle boundary (at once in lockstep or on the loop thread)."""
+        if self._thread is None or threading.current_thread() is self._thread or not self.running:
+            with self.io_lock:
+                fn()
+        else:
+            self._inbox.append(fn)
+
+    def step(self, cycles: int = 1) -> None:
+        """Lockstep: run ``cycles`` cycles on the caller's thread."""
+        if self.clock != "lockstep":
+            raise RuntimeError("loop: step() is for the lockstep clock; the wall clock runs by itself")
+        for _ in range(cycles):
+            self._cycle_all()
+
+    def run_until(self, done: Callable[[], bool], timeout: float | None) -> bool:
+        """Until ``done()``: lockstep runs cycles (``timeout`` simulated s, None: 1 h), wall waits (s)."""
+        if self.clock == "lockstep":
+            limit = self.cycle + (int(math.ceil(timeout / self.dt)) if timeout is not None else int(3600 / self.dt))
+            while not done():
+                if self.cycle >= limit:
+                    return False
+                self._cycle_all()
+            return True
+        end = None if timeout is None else time.monotonic() + timeout
+        while not done():
+            if self._thread is not None and not self._thread.is_alive():
+                return done()
+            if end is not None and time.monotonic() >= end:
+                return False
+            time.sleep(min(0.002, self.dt * 2))
+        return True
+
+    # -- the cycle ---------------------------------------------------------------------------------------
+    def _cycle_all(self) -> None:
+        """One cycle of every axis (the loop's own thread in wall mode, the caller's in lockstep)."""
+        inbox = self._inbox
+        with self.io_lock:
+            while inbox:
+                fn = inbox.popleft()
+                try:
+                    fn()
+                except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
+                    self.command_errors.append(f"{type(exc).__name__}: {exc}")
+            k = self.cycle
+            try:
+                for rt in self._rts:
+                    if rt.state is AxisState.SERVO:
+                        self._servo(rt, k)
+                    else:
+                        self._idle(rt, k)
+            except CycleFault as exc:
+                self._fault(exc.fault, exc.stop)
+            except AxisError as exc:  # a write that failed (bus error): a fault like any other
+                self._fault(Fault(exc.kind.value if exc.kind else "axis error", self._axis_named(exc), k, str(exc)),
+                            StopReason.FAULT)
+            except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
+                self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
+                                  f"{exc}"), StopReason.FAULT)
+            self.cycle = k + 1
+
+    def _axis_named(self, exc: Exception) -> str:
+        text = str(exc)
+        return next((rt.name for rt in self._rts if text.startswith(f"axis {rt.name}:")), self._rts[0].name)
+
+    def _servo(self, rt: AxisRuntime, k: int) -> None:
+        """One cycle of an enabled axis: sample -> reference -> control -> record -> limits -> write."""
+        ch = rt.ch
+        rt.servo_k += 1
+        fb = sample_axis(ch, rt.servo_k)
+        if rt.offset:
+            fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
+        if rt.jog_until and k >= rt.jog_until:
+            rt.jog_until = 0
+            rt.traj.stop()  # dead man: the jog was not renewed
+        run = rt.run
+        if run is not None:
+            ref = run.next()
+        else:
+            ref = rt.traj.next()
+        u = control(ch, ref, fb)
+        pos = fb.position
+        rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u
+        rt.following_error = ref.position - pos
+        ax = ch.axis
+        rt.ring.push(k, ref.position, pos, u, fb.velocity, getattr(ax, "torque_actual", math.nan),
+                     getattr(ax, "statusword", 0))
+        if run is not None and run.k < run.n:
+            i = run.k
+            r = run.rows
+            r[0][i] = pos
+            r[1][i] = fb.velocity
+            r[2][i] = u
+            if run.append is not None:
+                run.append(i * self.dt, ref.position, pos, u, fb.velocity)
+            run.k = i + 1
+        if rt.captures:
+            self._captures(rt, k)
+        rt.move_started = False
+        check_and_write(ch, rt.servo_k, self.dt, pos, ref.position, u)
+        if rt.handle is not None:
+            self._progress(rt)
+
+    def _idle(self, rt: AxisRuntime, k: int) -> None:
+        """One cycle of an axis that is not servoing: sample, zero effort; take it up once enabled."""
+        ax = rt.ch.axis
+        try:
+            fb = ax.read()
+            rt.read_error = ""
+        except AxisError as exc:
+            rt.read_error = str(exc)
+            try:
+                ax.write(0.0)
+            except AxisError:
+                pass
+            if rt.state is AxisState.ENABLING:
+                rt.state = AxisState.OFF
+                rt.enable_failed = str(exc)
+            return
+        ax.write(0.0)
+        pos = fb.position - rt.offset
+        rt.position, rt.velocity, rt.reference, rt.effort, rt.following_error = pos, fb.velocity, pos, 0.0, 0.0
+        rt.ring.push(k, pos, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
+                     getattr(ax, "statusword", 0))
+        if rt.captures:
+            self._captures(rt, k)
+        if rt.state is AxisState.ENABLING:
+            power = ax.power
+            if power is PowerState.OPERATION_ENABLED:
+                self._take_up(rt, pos)
+            elif power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+                rt.state = AxisState.OFF
+                rt.enable_failed = f"drive in {power.value}"
+
+    def _take_up(self, rt: AxisRuntime, pos: float) -> None:
+        """The drive reports Operation Enabled: hold where it stands, under its controller."""
+        ch = rt.ch
+        ch.controller.reset()
+        ch.following_since = None
+        ch.last_position = None
+        ch.clipped = 0
+        rt.traj.hold(pos)
+        rt.servo_k = 0
+        rt.state = AxisState.SERVO
+        rt.fault = None
+
+    def _progress(self, rt: AxisRuntime) -> None:
+        """Has the current command ended? (a move: reference arrived and in position, or timed out)."""
+        h = rt.handle
+        if h.status == "pending":
+            h.status = "moving"
+        h.cycles += 1
+        if rt.run is not None:
+            run = rt.run
+            if run.k < run.n:
+                return
+            rt.traj.hold(run.refs[0][run.n - 1])
+            rt.run = None
+            h._run = run
+            h.status = "settling"
+        if h.kind == "jog":
+            if rt.traj.arrived:  # stopped by the dead man or stop()
+                rt.handle = None
+                h._end("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
+            return
+        if not rt.traj.arrived:
+            return
+        h.status = "settling"
+        m = rt.motion
+        if abs(rt.traj.target - rt.position) <= m.in_position:
+            h._in_position += 1
+        else:
+            h._in_position = 0
+        h._settle_cycles += 1
+        if h._in_position * self.dt >= m.in_position_time:
+            h.settled = True
+        elif h._settle_cycles * self.dt < m.settle_timeout:
+            return
+        rt.handle = None
+        then, h._then = h._then, None
+        h._end("done", rt, "" if h.settled else
+               f"not within {m.in_position * 1e6:g} um of the target {m.settle_timeout:g} s after the reference "
+               f"arrived (error {(rt.traj.target - rt.position) * 1e6:+.2f} um)")
+        if then is not None:
+            then()
+
+    def _captures(self, rt: AxisRuntime, k: int) -> None:
+        started = rt.move_started
+        done = [cap for cap in rt.captures if cap.on_cycle(rt.ring, k, started)]
+        for cap in done:
+            rt.captures.remove(cap)
+
+    # -- faults and stops -----------------------------------------------------------------------------------
+    def _fault(self, fault: Fault, stop: StopReason) -> None:
+        """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
+        why = f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}"
+        for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
+            if not rt.ring.count:
+                continue
+            last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
+            armed = [c for c in rt.captures if c.trigger.kind == "fault"]
+            if not armed and self.fault_dir is not None:
+                # nobody asked, and the last seconds go to disk all the same: the whole ring
+                armed = [Capture(rt.name, CHANNELS, Trigger("fault"), min(rt.ring.count, rt.ring.size) - 1, 0,
+                                 self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
+                rt.captures.extend(armed)
+            for cap in armed:
+                cap.complete(rt.ring, last, why)
+                rt.captures.remove(cap)
+                self._queue_fault_capture(cap)
+        try:
+            _safe_stop(self._channels, fault)
+        except Exception as exc:  # noqa: BLE001 - the stop must not kill the loop; say so in the fault
+            fault.detail += f"; the stop itself failed: {exc}"
+        self.faults.append(fault)
+        for rt in self._rts:
+            was_on = rt.state is not AxisState.OFF
+            rt.state = AxisState.OFF
+            rt.run = None
+            rt.jog_until = 0
+            if rt.name == fault.axis or was_on:
+                rt.fault = fault
+            if rt.handle is not None:
+                h, rt.handle = rt.handle, None
+                h._end("fault", rt, fault.detail, fault)
+
+    def _queue_fault_capture(self, cap: Capture) -> None:
+        if self.fault_dir is None:
+            return
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        path = self.fault_dir / f"{cap.axis}-fault-{stamp}-c{cap.trigger_cycle}.csv"
+        self._pending_writes.append((path, cap))
+        if self._writer is None or not self._writer.is_alive():
+            # files are written off the loop's thread: the cycle goes on while they are
+            self._writer = threading.Thread(target=self._write_pending, name="drivectl-capture-writer", daemon=True)
+            self._writer.start()
+
+    def _write_pending(self) -> None:
+        while self._pending_writes:
+            path, cap = self._pending_writes.popleft()
+            try:
+                self.fault_files.extend(cap.write(path, plot=False))
+            except OSError as exc:
+                cap.detail += f"; not written: {exc}"
+
+    def _disable(self, rt: AxisRuntime, why: str) -> None:
+        """Torque off (the drive ramps per its options); a move under way ends as stopped."""
+        rt.ch.axis.disable()
+        rt.state = AxisState.OFF
+        rt.run = None
+        rt.jog_until = 0
+        if rt.handle is not None:
+            h, rt.handle = rt.handle, None
+            h._end("stopped", rt, why)
+
+    # -- wall clock -------------------------------------------------------------------------------------
+    def _thread_main(self) -> None:
+        paced = False
+        try:
+            self._setup_thread()
+            now = self._now
+            pacer = Pacer(self.dt, now=now)
+            # in-process, the emulated drives run on this clock too, as across processes: a loop later than
+            # the drive's RPDO deadline is caught by the drive (controllers/servo._pace_axes)
+            _pace_axes(self._channels, pacer.now)
+            paced = True
+            k = 0
+            while not self._closing:
+                pacer.wait(k)
+                t = now()
+                last = self._last_cycle_t
+                if last is not None and t - last > self.stall_s:
+                    self._on_stall(t - last)
+                behind = int((t - pacer.t0) / self.dt) - k
+                if behind > 1:  # far behind: skip the lost slots instead of bursting cycles to catch up
+                    pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
+                    self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
+                    k += behind
+                self._cycle_all()
+                self._last_cycle_t = now()
+                k += 1
+                self.slots = k
+                self.missed, self.worst_late = pacer.missed, pacer.worst_late
+                if self.gc_control and k % 100 == 0:
+                    self._collect(pacer, k)
+        except BaseException as exc:  # noqa: BLE001 - recorded; the watchdog and the drives stop the axes
+            self.error = exc
+            raise
+        finally:
+            if paced:
+                _pace_axes(self._channels, None)
+
+    def _setup_thread(self) -> None:
+        if self.gil_switch:
+            was = _take_switch(self.dt / 10)
+            self._switch_taken = True
+            self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
+                                   "a thread beside the loop gives up the GIL within a tenth of a cycle")
+        if self.gc_control:
+            _take_gc()
+            self._gc_taken = True
+            self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
+        if self.cpu is not None and hasattr(os, "sched_setaffinity"):
+            try:
+                os.sched_setaffinity(0, {self.cpu})  # 0: the calling thread (Linux)
+                self.granted["cpu"] = f"pinned to CPU {self.cpu}"
+            except OSError as exc:
+                self.granted["cpu"] = f"not pinned ({exc.strerror})"
+        if self.realtime and hasattr(os, "sched_setscheduler"):
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+                self.granted["priority"] = "SCHED_FIFO 50"
+            except OSError as exc:
+                self.granted["priority"] = f"SCHED_FIFO not granted ({exc.strerror}); normal priority"
+
+    def _collect(self, pacer: Pacer, k: int) -> None:
+        """A young-generation collection, only when at least half a cycle is left before the next."""
+        slack = pacer.t0 + k * self.dt - self._now()
+        if slack < 0.5 * self.dt:
+            return
+        t0 = self._now()
+        # young every 0.1 s, middle every 10 s, and what survived those once a minute (what a program
+        # beside the loop leaves in cycles, e.g. plotting, must not grow without bound)
+        gc.collect(2 if k % 60_000 == 0 else 1 if k % 10_000 == 0 else 0)
+        took = self._now() - t0
+        self.gc_runs += 1
+        if took > self.gc_worst:
+            self.gc_worst = took
+
+    def _on_stall(self, gap: float) -> None:
+        self.stalls += 1
+        self._stalled = False
+        servo = next((rt for rt in self._rts if rt.state is AxisState.SERVO), None)
+        if servo is None:
+            return
+        fault = Fault(FaultKind.LOOP_STALLED.value, servo.name, servo.servo_k,
+                      f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
+                      f"(bound {self.stall_s * 1e3:g} ms)")
+        with self.io_lock:
+            self._fault(fault, StopReason.FAULT)
+
+    def _watchdog_main(self) -> None:
+        """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
+        from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
+        while not self._closed.wait(self.stall_s / 2):
+            last = self._last_cycle_t
+            if last is None or self._closing or self._stalled:
+                continue
+            if self._now() - last > 2 * self.stall_s:
+                self._stalled = True
+                for rt in self._rts:
+                    if rt.state is AxisState.SERVO:
+                        _quietly(rt.ch.axis.quick_stop)
+                        _quietly(rt.ch.axis.write, 0.0)
+
+    # -- what the user's side reads ----------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        n = max(self.slots if self.clock == "wall" else self.cycle, 1)
+        out: dict[str, Any] = {
+            "clock": "wall clock, paced" if self.clock == "wall" else "lockstep (simulated time)",
+            "cycle_s": self.dt,
+            "cycles": self.cycle,
+            "missed_deadlines": self.missed,  # cycles that started over half a period late, skipped ones included
+            "missed_fraction": self.missed / n,  # of the cycle slots since the start
+            "skipped_cycles": self.skipped,
+            "worst_late_ms": self.worst_late * 1e3,
+            "stalls": self.stalls,
+            "stall_bound_ms": self.stall_s * 1e3,
+            "gc_collections": self.gc_runs,
+            "gc_worst_ms": self.gc_worst * 1e3,
+            "granted": dict(self.granted),
+            "faults": len(self.faults),
+            "command_errors": len(self.command_errors),
+            "axes": {},
+        }
+        for rt in self._rts:
+            ax = rt.ch.axis
+            a = {"state": rt.state.value, "power": ax.power.value, "position_m": rt.position,
+                 "velocity_m_s": rt.velocity, "reference_m": rt.reference, "following_error_m": rt.following_error,
+                 "effort": rt.effort, "effort_unit": ax.effort_unit, "clipped_cycles": rt.ch.clipped,
+                 "home_offset_m": rt.offset, "move": rt.handle.kind if rt.handle else None}
+            if rt.fault is not None:
+                a["fault"] = f"{rt.fault.kind}: {rt.fault.detail}"
+            if rt.read_error:
+                a["read_error"] = rt.read_error
+            out["axes"][rt.name] = a
+        return out
+
+
+_ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
+
+# the collector is the process's: the first wall-clock loop takes it, the last one gives it back
+_gc_lock = threading.Lock()
+_gc_holders = 0
+_gc_was_enabled = True
+
+
+def _take_gc() -> None:
+    global _gc_holders, _gc_was_enabled
+    with _gc_lock:
+        if _gc_holders == 0:
+            _gc_was_enabled = gc.isenabled()
+            gc.collect()
+            gc.freeze()  # what exists now is never scanned again: young collections stay short
+            gc.disable()
+        _gc_holders += 1
+
+
+def _release_gc() -> None:
+    global _gc_holders
+    with _gc_lock:
+        _gc_holders -= 1
+        if _gc_holders == 0:
+            gc.unfreeze()  # back to normal collection: what was frozen may be collected again
+            if _gc_was_enabled:
+                gc.enable()
+
+
+# the interpreter's switch interval is the process's too. Python hands the GIL to a waiting thread only
+# after the holder has run for this long (5 ms by default): a program plotting beside the loop would
+# hold the loop's thread off for up to five cycles. The first wall-clock loop shortens it, the last
+# one restores it.
+_switch_holders = 0
+_switch_was = 0.005
+
+
+def _take_switch(interval: float) -> float:
+    global _switch_holders, _switch_was
+    with _gc_lock:
+        if _switch_holders == 0:
+            _switch_was = sys.getswitchinterval()
+            sys.setswitchinterval(min(_switch_was, interval))
+        _switch_holders += 1
+        return _switch_was
+
+
+def _release_switch() -> None:
+    global _switch_holders
+    with _gc_lock:
+        _switch_holders -= 1
+        if _switch_holders == 0:
+            sys.setswitchinterval(_switch_was)
+
+
+def _quietly(fn: Callable[..., object], *args: object) -> object:
+    try:
+        return fn(*args)
+    except Exception:  # noqa: BLE001 - a stop from the watchdog goes on whatever one call raises
+        return None
+
+
+def drive_error(axis: Axis) -> tuple[int, str] | None:
+    """The drive's 0x603F (code, text), read by SDO where the axis can, else its last EMCY."""
+    code = None
+    if hasattr(axis, "read_error_code"):
+        code = _quietly(axis.read_error_code)
+    if code is None and getattr(axis, "last_emcy", None):
+        code = axis.last_emcy[0]
+    if code is None:
+        return None
+    return int(code), error_text(int(code))
+
+
+__all__ = ["AxisRuntime", "AxisState", "CHANNELS", "Capture", "CLOCKS", "Limits", "Move", "MotionFault",
+           "ProfileRun", "ServoLoop", "Trigger", "SAFE_STATES", "Controller", "drive_error"]

@@ -1,0 +1,2 @@
+"""Commissioning: scan/status/enable commands, identification, Bode, tuning and learning.
+"""

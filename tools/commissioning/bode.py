@@ -1,0 +1,758 @@
+"""`drivectl bode`: closed-loop frequency response from effort to position, overlaid on the model.
+
+The axis holds its position under its configured controller while a known periodic multisine is
+added to the controller's effort (:class:`ExcitedController`). The effort column of the run is then
+the total effort the drive applies, the position column what the encoder measures, and the loop
+stays closed (the controller keeps the axis in place; a limit ends the run as in any trace).
+
+Friction: where the model has Coulomb friction (a rigid feed axis), an axis holding still sticks
+whenever the loop's effort plus the excitation stays under the breakaway force, and the response is
+that of stick-slip, not of the plant: a stiff loop (one that cancels a low-frequency force, as ``mbc``
+does) keeps the axis stuck longest and bode then reads a false low-frequency "mode". There the
+measurement runs about a slow constant-velocity bias instead (:class:`BiasRamp`; the standard way to
+take a friction axis's FRF): the reference travels at ``v_b`` across the soft-limit range, ramped up
+inside the first, discarded period and down after the last; at a velocity that never reverses, Coulomb
+friction is one constant force, which the constant detrend removes, and the small-signal response is
+the linear plant's, whatever the controller. ``v_b`` is the fastest up to 10 mm/s whose travel keeps
+within 80 % of the soft limits (rigid-x, 20 s: 8 mm/s); sliding, the excitation need not beat the
+breakaway force, so its default peak is the largest whose own velocity (open loop) stays under half of
+``v_b`` (rigid-x: 31 N against 287 N when holding). The run checks the velocity it measured and says
+how much of the time the axis stood or reversed. ``bias_velocity`` (``--bias-velocity``) sets ``v_b``;
+0 holds still, as on a frictionless model (two-mass: it holds). The response is taken of ``pos - ref``,
+which removes the ramp; on a hold the reference is constant and nothing changes.
+
+Estimation: the first period is dropped (transient), the remaining whole periods are averaged with
+Welch's method using a rectangular window one period long, so every excited line falls exactly on
+a bin (no leakage). Because the loop is closed, the plain ``H1 = S_uy / S_uu`` is biased wherever
+noise enters the loop (quantisation, disturbances) and the controller feeds it back into ``u``; the
+estimate used is the joint input-output one, ``H = S_ry / S_ru`` with ``r`` the injected excitation,
+which is unbiased in closed loop because ``r`` is uncorrelated with that noise. ``coherence`` is the
+ordinary ``u``-``y`` magnitude-squared coherence (how linear and noise-free the line is).
+
+Mode: a lightly damped mode shows as a peak of the accelerance ``|H| w^2`` (a rigid body is flat
+there, so the 1/w^2 roll-off of position does not hide the peak), with a phase drop of about 180 deg
+through it. The peak is interpolated with a parabola in dB over the three lines around it; it counts
+as a mode only if it stands out (prominence) and the phase, with the known delays removed, drops.
+
+Model: the linear part of the same plant spec (bodies, viscous friction, coupling spring/damper,
+table spring; Coulomb friction and dead zones have no FRF and are left out), discretised exactly for
+the zero-order hold and delayed by the one-cycle transport delay of cyclic synchronous torque (plus
+any extra input delay of the spec): ``pos_k`` first sees ``u_k`` at row k + 2. Its mode is the natural
+frequency ``|lambda| / 2 pi`` of its lightly damped eigenvalue pair (two-mass: sqrt(k / mu) / 2 pi).
+
+Library: :func:`measure_frf` -> :class:`BodeResult`, :func:`model_frf`, :func:`write_bode`. CLI:
+:func:`add_bode_parser` and :func:`cmd_bode`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.linalg import expm
+
+from drivectl.controllers.base import Controller
+from drivectl.driver.axis import Feedback
+from drivectl.machine.config import ConfigError, MachineConfig
+from drivectl.plant_emulator.models import Design, PlantSpec
+from drivectl.profiles.base import Reference
+from drivectl.tracefile.format import Trace, atomic_write_bytes, atomic_write_text
+
+#: length of one multisine period, s: the frequency resolution is its inverse (1 Hz), and 1 s keeps
+#: ~20 periods to average in a 20 s run; the mode's half-power width (~8 Hz on two-mass) spans many lines
+PERIOD_S = 1.0
+#: default band, Hz: below 5 Hz the closed loop cancels the excitation; above ~250 Hz the position
+#: response of a mass falls under a few encoder counts and the estimate is quantisation noise
+DEFAULT_FMIN, DEFAULT_FMAX = 5.0, 250.0
+#: default peak excitation as a fraction of max_effort (small: the axis must stay near its hold point)
+DEFAULT_AMPLITUDE_FRACTION = 0.05
+#: ... or of the rated effort when max_effort is unlimited
+DEFAULT_AMPLITUDE_RATED = 0.5
+#: ... but at least this multiple of the plant's Coulomb level: below it the axis sticks and slips and
+#: the response is not the linear one (rigid-x, measured: 2x Coulomb reads 5-20 dB under the model,
+#: 6x within 1 dB from 20 Hz up, 5 dB low at 10 Hz where the loop holds the axis near rest)
+COULOMB_MULTIPLE = 6.0
+#: ... and at most this fraction of max_effort
+MAX_DEFAULT_FRACTION = 0.25
+#: the slow constant-velocity bias on an axis whose model has Coulomb friction (see the module doc): at
+#: most this fast (a slow feed) ...
+BIAS_MAX_M_S = 0.01
+#: ... and travelling at most this share of the soft-limit range about the hold point
+BIAS_LIMIT_SHARE = 0.8
+#: the default excitation under a bias drives the model's linear part (open loop) to at most 1 / this
+#: of the bias velocity, so the velocity never crosses zero and the friction stays one constant force
+BIAS_MARGIN = 2.0
+#: ... ramped up (and down after the last period) over this long, inside the first, discarded period
+BIAS_RAMP_S = 0.5
+#: a peak of the accelerance must rise this much (dB) above its surroundings to be called a mode
+MIN_PROMINENCE_DB = 6.0
+#: ... the phase, delays removed, must drop at least this much (deg) across it (a mode: ~180)
+MIN_PHASE_DROP_DEG = 90.0
+#: lines with a coherence below this are not used to locate the mode
+MIN_COHERENCE = 0.5
+#: a model eigenvalue pair counts as a mode if its damping ratio is below this
+MODE_MAX_DAMPING = 0.3
+
+CSV_COLUMNS = ("freq_hz", "mag_db", "phase_deg", "coherence", "model_mag_db", "model_phase_deg")
+
+
+class BodeError(ValueError):
+    """Bad input to the measurement (amplitude, band, seconds); one line."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Excitation
+# --------------------------------------------------------------------------------------------------
+
+
+def multisine(n: int, dt: float, fmin: float, fmax: float, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
+    """One period (``n`` samples) of a flat-spectrum multisine on every bin in [fmin, fmax], scaled
+    to a peak of ``amplitude``; returns (signal, excited frequencies). Schroeder phases keep the
+    crest factor low (~1.5-2), so most of the effort budget goes into the lines, not into peaks."""
+    df = 1.0 / (n * dt)
+    lines = np.arange(math.ceil(fmin / df - 1e-9), math.floor(fmax / df + 1e-9) + 1)
+    lines = lines[lines > 0]
+    if len(lines) < 3:
+        raise BodeError(f"bode: band {fmin:g}-{fmax:g} Hz holds fewer than 3 lines of {df:g} Hz")
+    k = np.arange(1, len(lines) + 1)
+    phases = -math.pi * k * (k - 1) / len(lines)
+    t = np.arange(n) * dt
+    x = np.zeros(n)
+    for line, ph in zip(lines, phases, strict=True):
+        x += np.cos(2 * math.pi * line * df * t + ph)
+    x *= amplitude / np.max(np.abs(x))
+    return x, lines * df
+
+
+class ExcitedController(Controller):
+    """The axis's controller plus a known signal added to its effort, sample by sample.
+
+    The inner controller does not see the excitation as its own output (TDE controllers take it for a
+    disturbance and partly cancel it below their bandwidth); that is what a closed-loop measurement
+    is, and why the FRF is estimated against the excitation, not against the effort alone.
+    """
+
+    name = "excited"
+    SettingsClass = None  # type: ignore[assignment] - a wrapper, it has no settings of its own
+
+    def __init__(self, inner: Controller, excitation: np.ndarray):  # no Controller.__init__: no settings
+        self.inner = inner
+        self.dt = inner.dt
+        self.excitation = np.asarray(excitation, dtype=float)
+        self._k = 0
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self._k = 0
+
+    def prepare(self, profile: Any, times: np.ndarray) -> None:
+        self.inner.prepare(profile, times)  # the inner controller's reference preview
+
+    def step(self, reference: Reference, feedback: Feedback) -> float:
+        k = self._k
+        self._k += 1
+        e = float(self.excitation[k]) if k < len(self.excitation) else 0.0
+        return self.inner.step(reference, feedback) + e
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.inner.describe(), "excitation": "multisine on the effort"}
+
+
+@dataclass(frozen=True)
+class Hold:
+    """A profile that holds one position for ``duration`` s (the servo loop's Profile protocol)."""
+
+    position: float
+    duration: float
+    name: str = "hold"
+
+    @property
+    def start_position(self) -> float:
+        return self.position
+
+    def at(self, t: float) -> Reference:
+        return Reference(self.position)
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        t = np.asarray(t, dtype=float)
+        z = np.zeros_like(t)
+        return z + self.position, z, z.copy(), z.copy()
+
+
+@dataclass(frozen=True)
+class BiasRamp:
+    """A constant-velocity reference (the servo loop's Profile protocol): from ``start`` the velocity
+    rises to ``velocity`` over ``ramp`` s (raised cosine: finite jerk), stays there until
+    ``duration - ramp`` and falls back to 0 at ``duration``; it holds its last position afterwards."""
+
+    start: float
+    velocity: float
+    duration: float
+    ramp: float = BIAS_RAMP_S
+    name: str = "constant-velocity bias + multisine"
+
+    @property
+    def start_position(self) -> float:
+        return self.start
+
+    @property
+    def travel(self) -> float:
+        """Distance covered, m (signed): the ramps are symmetric, each loses half its time."""
+        return self.velocity * (self.duration - self.ramp)
+
+    def at(self, t: float) -> Reference:
+        p, v, a, j = self.sample(np.array([float(t)]))
+        return Reference(float(p[0]), float(v[0]), float(a[0]), float(j[0]))
+
+    def sample(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        vb, ta, w = self.velocity, self.ramp, math.pi / self.ramp
+        td = self.duration - ta  # the deceleration starts here
+        up, down = t < ta, t > td
+        pos = self.start + vb * (t - 0.5 * ta)  # the cruise: each ramp lags a full-speed start by ta / 2
+        vel = np.full_like(t, vb)
+        acc = np.zeros_like(t)
+        jerk = np.zeros_like(t)
+        tu = t[up]
+        pos[up] = self.start + vb * (0.5 * tu - np.sin(w * tu) / (2 * w))
+        vel[up] = vb * 0.5 * (1 - np.cos(w * tu))
+        acc[up] = vb * 0.5 * w * np.sin(w * tu)
+        jerk[up] = vb * 0.5 * w * w * np.cos(w * tu)
+        s = t[down] - td  # mirror image of the ramp up
+        pos[down] = self.start + vb * (td - 0.5 * ta) + vb * (0.5 * s + np.sin(w * s) / (2 * w))
+        vel[down] = vb * 0.5 * (1 + np.cos(w * s))
+        acc[down] = -vb * 0.5 * w * np.sin(w * s)
+        jerk[down] = -vb * 0.5 * w * w * np.cos(w * s)
+        return pos, vel, acc, jerk
+
+
+# --------------------------------------------------------------------------------------------------
+# Model
+# --------------------------------------------------------------------------------------------------
+
+
+def linear_matrices(design: Design) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous (Ac, Bc) of the design's linear part: state [x0, v0, (x1, v1)], effort on body 0.
+
+    As Plant._matrices, but with the mean of direction-dependent viscous levels and the coupling
+    always engaged (a dead zone has no small-signal FRF); Coulomb friction is left out."""
+    n = len(design.bodies)
+    ac = np.zeros((2 * n, 2 * n))
+    bc = np.zeros((2 * n, 1))
+    for i, b in enumerate(design.bodies):
+        ac[2 * i, 2 * i + 1] = 1.0
+        ac[2 * i + 1, 2 * i + 1] = -0.5 * (b.c_pos + b.c_neg) / b.mass
+    bc[1, 0] = 1.0 / design.bodies[0].mass
+    table = n - 1
+    ac[2 * table + 1, 2 * table] -= design.table_stiffness / design.bodies[table].mass
+    if design.coupling is not None and n == 2:
+        k, c = design.coupling.stiffness, design.coupling.damping
+        m0, m1 = design.bodies[0].mass, design.bodies[1].mass
+        ac[1, :] += np.array([-k, -c, k, c]) / m0
+        ac[3, :] += np.array([k, c, -k, -c]) / m1
+    return ac, bc
+
+
+def model_frf(spec: PlantSpec, dt: float, freqs: np.ndarray, *, transport_cycles: int = 1) -> np.ndarray:
+    """Complex FRF from the recorded effort to the recorded table position, as the loop samples them:
+    exact ZOH discretisation of the linear part, ``transport_cycles`` cycles of transport delay and
+    the spec's extra input delay."""
+    design = spec.design()
+    ac, bc = linear_matrices(design)
+    nx = ac.shape[0]
+    aug = np.zeros((nx + 1, nx + 1))
+    aug[:nx, :nx] = ac
+    aug[:nx, nx:] = bc
+    e = expm(aug * dt)
+    ad, bd = e[:nx, :nx], e[:nx, nx:]
+    cvec = np.zeros(nx)
+    cvec[-2] = 1.0  # table position
+    z = np.exp(1j * 2 * math.pi * np.asarray(freqs, dtype=float) * dt)
+    eye = np.eye(nx)
+    h = np.array([cvec @ np.linalg.solve(zi * eye - ad, bd[:, 0]) for zi in z])
+    delay = transport_cycles * dt + design.input_delay
+    return h * np.exp(-1j * 2 * math.pi * np.asarray(freqs) * delay)
+
+
+def model_modes(spec: PlantSpec) -> list[float]:
+    """Natural frequencies (Hz) of the lightly damped eigenvalue pairs of the linear model."""
+    ac, _ = linear_matrices(spec.design())
+    out = []
+    for lam in np.linalg.eigvals(ac):
+        wn = abs(lam)
+        if lam.imag > 0 and wn > 0 and -lam.real / wn < MODE_MAX_DAMPING:
+            out.append(float(wn / (2 * math.pi)))
+    return sorted(out)
+
+
+# --------------------------------------------------------------------------------------------------
+# Estimation and the mode
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Mode:
+    """A resonance found in a FRF: frequency, how far it stands out, how much the phase drops."""
+
+    freq_hz: float
+    prominence_db: float
+    phase_drop_deg: float
+
+
+def find_mode(freqs: np.ndarray, h: np.ndarray, coherence: np.ndarray, delay_s: float) -> Mode | None:
+    """The most prominent accelerance peak that qualifies as a mode (see the module doc), or None."""
+    from scipy import signal  # here: the CLI imports this module to build its parser (0.9 s of scipy.signal)
+
+    w = 2 * math.pi * freqs
+    acc_db = 20 * np.log10(np.maximum(np.abs(h) * w**2, 1e-300))
+    good = coherence >= MIN_COHERENCE
+    masked = np.where(good, acc_db, np.nan)
+    # find_peaks needs finite values: bad lines get the floor so they never form a peak
+    floor = np.nanmin(masked) if np.any(good) else 0.0
+    peaks, props = signal.find_peaks(np.nan_to_num(masked, nan=floor), prominence=MIN_PROMINENCE_DB)
+    if len(peaks) == 0:
+        return None
+    phase = np.unwrap(np.angle(h * np.exp(1j * w * delay_s)))
+    for i in peaks[np.argsort(props["prominences"])[::-1]]:
+        if i == 0 or i == len(freqs) - 1:
+            continue
+        # parabola through the three lines in dB: the vertex is the peak between the lines
+        y0, y1, y2 = acc_db[i - 1 : i + 2]
+        denom = y0 - 2 * y1 + y2
+        off = 0.5 * (y0 - y2) / denom if denom < 0 else 0.0
+        f_peak = float(freqs[i] + off * (freqs[i + 1] - freqs[i]))
+        lo = int(np.searchsorted(freqs, f_peak / 1.3))
+        hi = min(int(np.searchsorted(freqs, f_peak * 1.3)), len(freqs) - 1)
+        drop = float(np.degrees(phase[lo] - phase[hi]))
+        if drop >= MIN_PHASE_DROP_DEG:
+            prom = float(props["prominences"][list(peaks).index(i)])
+            return Mode(f_peak, prom, drop)
+    return None
+
+
+def estimate_frf(r: np.ndarray, u: np.ndarray, y: np.ndarray, n: int, dt: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(freqs, H = S_ry / S_ru, u-y coherence) over whole periods of ``n`` samples (first dropped)."""
+    from scipy import signal
+
+    periods = len(u) // n
+    if periods < 3:
+        raise BodeError(f"bode: {len(u)} samples hold {periods} excitation periods of {n}; need at least 3")
+    sl = slice(n, periods * n)  # drop the first period: the loop's transient
+    kw = {"fs": 1.0 / dt, "window": "boxcar", "nperseg": n, "noverlap": 0, "detrend": "constant"}
+    f, s_ry = signal.csd(r[sl], y[sl], **kw)
+    _, s_ru = signal.csd(r[sl], u[sl], **kw)
+    _, coh = signal.coherence(u[sl], y[sl], **kw)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = s_ry / s_ru
+    return f, h, coh
+
+
+# --------------------------------------------------------------------------------------------------
+# The measurement
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class BodeResult:
+    axis: str
+    plant: str
+    bus: str
+    freqs: np.ndarray  # Hz, the excited lines
+    frf: np.ndarray  # complex, effort -> position (m per effort unit)
+    coherence: np.ndarray
+    model: np.ndarray  # complex, the model's FRF on the same lines
+    mode: Mode | None
+    model_mode_hz: float | None
+    amplitude: float
+    effort_unit: str
+    trace: Trace
+    stop: str = "completed"
+    detail: str = ""
+    coulomb: float = 0.0  # the plant's largest Coulomb level (effort unit): not in the linear model
+    bias_velocity: float = 0.0  # m/s, the constant-velocity bias the response was measured about (0: hold)
+    stood_share: float = 0.0  # under a bias: share of the analysed cycles the axis stood or moved backwards
+    files: list[Path] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.stop == "completed"
+
+    @property
+    def mode_hz(self) -> float | None:
+        return self.mode.freq_hz if self.mode else None
+
+    @property
+    def error_pct(self) -> float | None:
+        if self.mode is None or self.model_mode_hz is None:
+            return None
+        return 100.0 * (self.mode.freq_hz - self.model_mode_hz) / self.model_mode_hz
+
+    def to_json(self) -> dict[str, Any]:
+        def r(x: float | None, nd: int) -> float | None:
+            return None if x is None else round(x, nd)
+
+        return {"axis": self.axis, "mode_hz": r(self.mode_hz, 3), "model_mode_hz": r(self.model_mode_hz, 3),
+                "error_pct": r(self.error_pct, 3)}
+
+    def csv_text(self) -> str:
+        out = io.StringIO()
+        out.write(f"# drivectl bode: axis {self.axis}, plant {self.plant}, {self.bus}; effort -> position, "
+                  f"magnitude in dB re 1 m/{self.effort_unit or 'effort'}; multisine peak "
+                  f"{self.amplitude:g} {self.effort_unit}"
+                  + (f" about a constant-velocity bias of {self.bias_velocity:g} m/s" if self.bias_velocity else "")
+                  + f"; mode {_fmt(self.mode_hz)} Hz, model "
+                  f"{_fmt(self.model_mode_hz)} Hz\n")
+        out.write(",".join(CSV_COLUMNS) + "\n")
+        data = np.column_stack([self.freqs, _db(self.frf), _deg(self.frf), self.coherence, _db(self.model),
+                                _deg(self.model)])
+        np.savetxt(out, data, fmt=["%.6g", "%.6f", "%.4f", "%.6f", "%.6f", "%.4f"], delimiter=",")
+        return out.getvalue()
+
+
+def _db(h: np.ndarray) -> np.ndarray:
+    return 20 * np.log10(np.maximum(np.abs(h), 1e-300))
+
+
+def _deg(h: np.ndarray) -> np.ndarray:
+    """Unwrapped phase (the delays and the mode take it well past -360 deg), its first line in (-360, 0]
+    (a position response to effort starts near -90 .. -180 deg), so measured and model share a branch."""
+    if len(h) == 0:
+        return np.array([])
+    ph = np.degrees(np.unwrap(np.angle(h)))
+    return ph - 360.0 * math.ceil(ph[0] / 360.0)
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def hold_position(cfg: MachineConfig, axis_name: str) -> float:
+    """Where the axis holds during the measurement: 0 if inside the soft limits, else their middle."""
+    lim = cfg.axis(axis_name).limits.position
+    if lim is None or lim[0] <= 0.0 <= lim[1]:
+        return 0.0
+    return 0.5 * (lim[0] + lim[1])
+
+
+def coulomb_level(spec: PlantSpec) -> float:
+    """The largest Coulomb (+ Stribeck) force of the plant's bodies, effort unit."""
+    return max((max(b.fc_pos, b.fc_neg) + b.stribeck_excess for b in spec.design().bodies), default=0.0)
+
+
+def default_amplitude(spec: PlantSpec, max_effort: float, rated_effort: float) -> float:
+    """Peak multisine effort: 5 % of max_effort, raised to 6x the Coulomb level, capped at 25 %."""
+    coulomb = coulomb_level(spec)
+    if math.isfinite(max_effort):
+        return min(max(DEFAULT_AMPLITUDE_FRACTION * max_effort, COULOMB_MULTIPLE * coulomb),
+                   MAX_DEFAULT_FRACTION * max_effort)
+    return max(DEFAULT_AMPLITUDE_RATED * rated_effort, COULOMB_MULTIPLE * coulomb)
+
+
+def excitation_peak_velocity(spec: PlantSpec, one_period: np.ndarray, dt: float) -> float:
+    """Peak velocity (m/s) of the model's linear part driven open-loop by one period of the multisine,
+    in periodic steady state: the excitation's lines through the velocity response ``j w H``."""
+    n = len(one_period)
+    x = np.fft.rfft(one_period)
+    f = np.fft.rfftfreq(n, dt)
+    on = np.abs(x) > 1e-9 * np.max(np.abs(x))
+    v = np.zeros_like(x)
+    v[on] = x[on] * 1j * 2 * math.pi * f[on] * model_frf(spec, dt, f[on])
+    return float(np.max(np.abs(np.fft.irfft(v, n))))
+
+
+def bias_plan(cfg: MachineConfig, axis_name: str, spec: PlantSpec, periods: int,
+              bias_velocity: float | None) -> BiasRamp | None:
+    """The constant-velocity bias for the measurement, or None (hold still). ``bias_velocity`` None:
+    where the model has Coulomb friction, the fastest velocity up to :data:`BIAS_MAX_M_S` whose travel
+    stays within :data:`BIAS_LIMIT_SHARE` of the soft-limit range, else hold; 0: hold. The travel is
+    centred on the hold point; an explicit velocity whose travel leaves the soft limits is refused."""
+    if bias_velocity is not None and not (math.isfinite(bias_velocity) and bias_velocity >= 0):
+        raise BodeError(f"bode: --bias-velocity: must be >= 0 m/s, got {bias_velocity:g}")
+    if bias_velocity == 0 or (bias_velocity is None and coulomb_level(spec) <= 0):
+        return None
+    cruise = periods * PERIOD_S  # the ramps lose half their time each: travel = v * cruise
+    hold = hold_position(cfg, axis_name)
+    lim = cfg.axis(axis_name).limits.position
+    if bias_velocity is None:
+        room = math.inf if lim is None else BIAS_LIMIT_SHARE * 2 * min(hold - lim[0], lim[1] - hold)
+        bias_velocity = min(BIAS_MAX_M_S, room / cruise)
+    travel = bias_velocity * cruise
+    if lim is not None and not (lim[0] <= hold - 0.5 * travel and hold + 0.5 * travel <= lim[1]):
+        raise BodeError(f"bode: --bias-velocity {bias_velocity:g} m/s for --seconds {cruise:g} travels "
+                        f"{travel * 1e3:.1f} mm about {hold * 1e3:g} mm, more than axes.{axis_name}.limits.position_m "
+                        f"({lim[0]:g} .. {lim[1]:g} m) allows; lower one of them")
+    return BiasRamp(hold - 0.5 * travel, bias_velocity, cruise + BIAS_RAMP_S)
+
+
+def measure_frf(
+    cfg: MachineConfig,
+    axis_name: str,
+    *,
+    sim: bool = False,
+    seconds: float = 20.0,
+    amplitude: float | None = None,
+    fmin: float = DEFAULT_FMIN,
+    fmax: float = DEFAULT_FMAX,
+    model: str | None = None,
+    plant: str | None = None,
+    controller: Controller | None = None,
+    noise: float = 0.0,
+    seed: int = 0,
+    bias_velocity: float | None = None,
+) -> BodeResult:
+    """Hold ``axis_name`` under its configured controller, add a multisine of peak ``amplitude``
+    (effort unit; default 5 % of max_effort) on [fmin, fmax] Hz to the effort for ``seconds``, and
+    estimate the FRF effort -> position beside the model's. ``sim`` runs on SimAxis, else on the
+    configured bus (the emulated drives on the virtual bus by default). A run stopped by a limit
+    returns a result with ``ok`` False (and no FRF: arrays empty). ``model`` (``--model``) is the plant
+    the controller believes and the overlay shows; ``plant`` (``--plant``) what the emulated drive
+    plays (see :func:`~drivectl.machine.build.model_specs`); ``controller`` replaces the axis's.
+    ``bias_velocity`` (m/s): the constant-velocity bias (:func:`bias_plan`; None: automatic where the
+    model has Coulomb friction, 0: hold still)."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.servo import Channel, run_channels
+    from drivectl.machine.build import model_specs, open_machine, plant_specs
+
+    ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
+    dt = cfg.cycle_s
+    nyq = 0.5 / dt
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise BodeError(f"bode: --seconds: must be > 0, got {seconds:g}")
+    if not (0 < fmin < fmax <= nyq):
+        raise BodeError(f"bode: band --fmin {fmin:g} .. --fmax {fmax:g} Hz: need 0 < fmin < fmax <= {nyq:g} Hz "
+                        "(Nyquist)")
+    max_eff = ac.limits.max_effort
+    plants = plant_specs(cfg, [axis_name], plant)
+    spec = model_specs(cfg, [axis_name], model, plant, plants=plants)[axis_name]
+    n = int(round(PERIOD_S / dt))
+    periods = max(3, int(seconds / PERIOD_S))
+    bias = bias_plan(cfg, axis_name, spec, periods, bias_velocity)
+    if amplitude is None and bias is not None:
+        # sliding, the friction is no threshold to beat: the largest excitation whose own velocity
+        # (open loop, peak) stays within 1 / BIAS_MARGIN of the bias, so the axis never reverses
+        unit, _ = multisine(n, dt, fmin, fmax, 1.0)
+        amplitude = min(abs(bias.velocity) / (BIAS_MARGIN * excitation_peak_velocity(spec, unit, dt)),
+                        MAX_DEFAULT_FRACTION * max_eff)
+    elif amplitude is None:
+        amplitude = default_amplitude(spec, max_eff, ac.rated_effort)
+    # the excitation alone must leave the controller most of the effort range, else clipping (a
+    # nonlinearity) corrupts the estimate
+    if not (math.isfinite(amplitude) and 0 < amplitude <= 0.5 * max_eff):
+        raise BodeError(f"bode: --amplitude: must be > 0 and at most half of axes.{axis_name}.limits.max_effort "
+                        f"({0.5 * max_eff:g}), got {amplitude:g}")
+    one, _ = multisine(n, dt, fmin, fmax, amplitude)
+    exc = np.tile(one, periods)
+
+    inner = controller or make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
+                                          source=f"{cfg.source}: axes.{axis_name}.controller_settings")
+    ctrl = ExcitedController(inner, exc)
+    profile: Hold | BiasRamp = bias or Hold(hold_position(cfg, axis_name), periods * PERIOD_S)
+    # periods * n rows exactly (the row count is duration / dt + 1, so one dt short), then the bias's
+    # ramp down to rest after the last period (not analysed)
+    rows = periods * n + (int(round(BIAS_RAMP_S / dt)) if bias else 0)
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: profile.start_position},
+                           noise=noise, seed=seed)
+    try:
+        what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
+        what += " + multisine on the effort"
+        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": what, "bus": machine.bus,
+                "config": cfg.source}
+        res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
+                           duration=(rows - 1) * dt)
+    finally:
+        machine.close()
+    tr = res.trace
+    models = model_modes(spec)
+    in_band = [f for f in models if fmin <= f <= fmax]
+    model_mode = in_band[0] if in_band else None
+    base = BodeResult(axis_name, spec.name, machine.bus, np.array([]), np.array([], dtype=complex), np.array([]),
+                      np.array([], dtype=complex), None, model_mode, amplitude, spec.effort_unit, tr,
+                      res.stop.value, res.detail, coulomb_level(spec), 0.0 if bias is None else bias.velocity)
+    if not res.ok:
+        return base
+    m = min(len(tr), periods * n)
+    # pos - ref: the bias's ramp is not in the response (on a hold, ref is a constant the detrend removes)
+    f, h, coh = estimate_frf(exc[:m], tr.effort[:m], (tr.pos - tr.ref)[:m], n, dt)
+    keep = (f >= fmin - 1e-9) & (f <= fmax + 1e-9)
+    base.freqs, base.frf, base.coherence = f[keep], h[keep], coh[keep]
+    if bias is not None:  # did it slide all along? velocity over 5 cycles (one count per cycle: 0.08 mm/s)
+        v = (tr.pos[n + 5 : m] - tr.pos[n : m - 5]) / (5 * dt)
+        base.stood_share = float(np.mean(v * math.copysign(1.0, bias.velocity) <= 0.0))
+    base.model = model_frf(spec, dt, base.freqs)
+    # delays removed for the phase test: transport cycle, half-cycle of the hold, extra input delay
+    base.mode = find_mode(base.freqs, base.frf, base.coherence, 1.5 * dt + spec.design().input_delay)
+    return base
+
+
+# --------------------------------------------------------------------------------------------------
+# Output
+# --------------------------------------------------------------------------------------------------
+
+
+def plot_bode(res: BodeResult, path: Path) -> Path:
+    """Magnitude, phase and coherence over frequency, measured beside the model; written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_m, ax_p, ax_c) = plt.subplots(3, 1, figsize=(8, 8), sharex=True,
+                                           gridspec_kw={"height_ratios": [3, 2, 1]})
+    f = res.freqs
+    ax_m.semilogx(f, _db(res.frf), lw=1.2, label="measured (closed loop)")
+    ax_m.semilogx(f, _db(res.model), lw=1.0, ls="--", label="model (linear part, ZOH + 1-cycle delay)")
+    ax_p.semilogx(f, _deg(res.frf), lw=1.2)
+    ax_p.semilogx(f, _deg(res.model), lw=1.0, ls="--")
+    ax_c.semilogx(f, res.coherence, lw=1.0, color="C2")
+    for ax, x, style, label in ((ax_m, res.mode_hz, "-", "mode"), (ax_m, res.model_mode_hz, ":", "model mode")):
+        if x is not None:
+            for a in (ax_m, ax_p, ax_c):
+                a.axvline(x, color="C3", ls=style, lw=0.8, label=f"{label} {x:.2f} Hz" if a is ax else None)
+    ax_m.set_ylabel(f"|position / effort| [dB re 1 m/{res.effort_unit or 'effort'}]")
+    ax_m.legend(loc="best", fontsize=8)
+    ax_p.set_ylabel("phase [deg]")
+    ax_c.set_ylabel("coherence")
+    ax_c.set_ylim(0, 1.05)
+    ax_c.set_xlabel("frequency [Hz]")
+    for ax in (ax_m, ax_p, ax_c):
+        ax.grid(True, which="both", alpha=0.3)
+    err = f", error {res.error_pct:+.2f} %" if res.error_pct is not None else ""
+    ax_m.set_title(f"drivectl bode: axis {res.axis} ({res.plant}), mode {_fmt(res.mode_hz)} Hz, "
+                   f"model {_fmt(res.model_mode_hz)} Hz{err}")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def write_bode(res: BodeResult, out_dir: str | Path) -> list[Path]:
+    """``bode-AXIS.csv`` and ``bode-AXIS.png`` in ``out_dir``, each written atomically."""
+    out = Path(out_dir)
+    csv = out / f"bode-{res.axis}.csv"
+    atomic_write_text(csv, res.csv_text())
+    png = plot_bode(res, out / f"bode-{res.axis}.png")
+    res.files = [csv, png]
+    return res.files
+
+
+def summary_text(res: BodeResult) -> str:
+    """A short table (a few lines around the mode and decade points) and the mode beside the model's."""
+    lines = [f"bode: axis {res.axis} ({res.plant}) on {res.bus}, multisine peak {res.amplitude:g} "
+             f"{res.effort_unit}, {res.freqs[0]:g}-{res.freqs[-1]:g} Hz"]
+    head = f"{'freq Hz':>8} {'mag dB':>9} {'phase':>9} {'coh':>6} {'model dB':>9} {'m phase':>9}"
+    lines += [head, "-" * len(head)]
+    picks = [x for x in (10, 20, 50, 100, 200, res.mode_hz, res.model_mode_hz) if x is not None]
+    rows = sorted({int(np.argmin(np.abs(res.freqs - x))) for x in picks if res.freqs[0] <= x <= res.freqs[-1]})
+    mag, ph, mmag, mph = _db(res.frf), _deg(res.frf), _db(res.model), _deg(res.model)
+    for i in rows:
+        lines.append(f"{res.freqs[i]:>8.1f} {mag[i]:>9.2f} {ph[i]:>9.1f} {res.coherence[i]:>6.3f} "
+                     f"{mmag[i]:>9.2f} {mph[i]:>9.1f}")
+    if res.mode is not None:
+        err = f", error {res.error_pct:+.2f} %" if res.error_pct is not None else ""
+        lines.append(f"mode: {res.mode.freq_hz:.2f} Hz (peak +{res.mode.prominence_db:.1f} dB, phase drop "
+                     f"{res.mode.phase_drop_deg:.0f} deg); model {_fmt(res.model_mode_hz)} Hz{err}")
+    else:
+        lines.append(f"mode: none found in the band; model {_fmt(res.model_mode_hz)} Hz")
+    if res.coulomb > 0 and res.bias_velocity > 0:
+        lines.append(f"measured about a constant-velocity bias of {res.bias_velocity * 1e3:.2f} mm/s: the axis "
+                     f"slides, its Coulomb friction ({res.coulomb:g} {res.effort_unit}) is a constant force "
+                     "outside the response")
+        if res.stood_share > 0:
+            lines.append(f"warning: the axis stood or moved backwards in {100 * res.stood_share:.1f} % of the "
+                         "analysed cycles: where it stuck the response is not the plant's (lower --amplitude)")
+    elif res.coulomb > 0:
+        lines.append(f"note: the model is the linear part; this plant's Coulomb friction ({res.coulomb:g} "
+                     f"{res.effort_unit}) is not in it and lowers the measured response where the axis sticks")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+# --------------------------------------------------------------------------------------------------
+
+
+def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """``drivectl bode --axis NAME [--sim] [--seconds S] [--amplitude A] [--fmin F --fmax F] [--out DIR] [--json]``."""
+    p = subparsers.add_parser(
+        "bode", help="closed-loop frequency response effort -> position, its mode, beside the model's",
+        description="Hold the axis under its configured controller, add a multisine to the effort, estimate "
+        "the frequency response from effort to position (averaged over whole periods), find the mode "
+        "(accelerance peak with a phase drop) and write bode-AXIS.csv and bode-AXIS.png overlaid on the "
+        "model's response. Runs on the configured bus (default: emulated drives on the virtual bus); --sim "
+        "on SimAxis.")
+    p.add_argument("--axis", default="x", help="axis name (default x)")
+    p.add_argument("--out", default="traces", metavar="DIR", help="folder for bode-AXIS.csv/.png (default traces)")
+    p.add_argument("--json", action="store_true",
+                   help='print exactly one JSON object {"axis", "mode_hz", "model_mode_hz", "error_pct"}')
+    p.add_argument("--sim", action="store_true", help="run on SimAxis (no bus)")
+    p.add_argument("--model", metavar="NAME|FILE",
+                   help="the plant the controller believes and the overlay shows (default: the axis's model, else "
+                   "its plant)")
+    p.add_argument("--plant", metavar="NAME|FILE", help="override what the emulated drive plays (default: the axis's "
+                   "plant)")
+    p.add_argument("--seconds", type=float, default=20.0, help="excitation length in s (default 20)")
+    p.add_argument("--amplitude", type=float, metavar="EFFORT",
+                   help="peak of the multisine in the effort unit (default 5 %% of the axis's max_effort)")
+    p.add_argument("--bias-velocity", type=float, metavar="M_S",
+                   help="measure about this constant velocity (m/s) so a friction axis never sticks (default: "
+                   "automatic where the model has Coulomb friction, twice the excitation's peak velocity; 0 = "
+                   "hold still)")
+    p.add_argument("--fmin", type=float, default=DEFAULT_FMIN, help=f"lowest line, Hz (default {DEFAULT_FMIN:g})")
+    p.add_argument("--fmax", type=float, default=DEFAULT_FMAX, help=f"highest line, Hz (default {DEFAULT_FMAX:g})")
+    return p
+
+
+def cmd_bode(args: argparse.Namespace) -> int:
+    """0 done; 1 the loop was stopped by a limit or the axis failed; 2 bad input (one line on stderr)."""
+    from drivectl.controllers.base import SettingsError
+    from drivectl.controllers.runtime.servo import LimitError
+    from drivectl.driver.axis import AxisConfigError, AxisError
+    from drivectl.machine.config import load_config
+    from drivectl.plant_emulator.models import PlantError
+
+    try:
+        from drivectl.tracefile.format import TraceError
+        from drivectl.tracefile.stream import check_output_folder
+
+        cfg = load_config(getattr(args, "config", None))
+        try:  # before the axis moves: the response goes there after the measurement
+            check_output_folder(args.out, "--out", 5_000_000)
+        except TraceError as exc:
+            raise ConfigError(str(exc)) from None
+        res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
+                          fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
+                          bias_velocity=args.bias_velocity)
+    except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
+        print(f"drivectl: {exc}", file=sys.stderr)
+        return 2
+    except AxisError as exc:
+        print(f"drivectl: {exc}", file=sys.stderr)
+        return 1
+    if not res.ok:
+        from drivectl.controllers.runtime.safe_stop import end_state_line
+
+        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+        after = m.get("safe_after_cycles", "unknown")
+        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                               {res.axis: None if after == "unknown" else int(after)})
+        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
+              "no response written", file=sys.stderr)
+        return 1
+    write_bode(res, args.out)
+    if args.json:
+        print(json.dumps(res.to_json()))
+    else:
+        print(summary_text(res), end="")
+        for p in res.files:
+            print(f"wrote {p}")
+    return 0

@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     from drivectl.tools.cli.shell import add_shell_parser
 
     add_shell_parser(sub)
+    from drivectl.tools.ui.command import add_ui_parser
+
+    add_ui_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -183,6 +186,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.cli.shell import cmd_shell
 
             return cmd_shell(args)
+        if args.command == "ui":
+            from drivectl.tools.ui.command import cmd_ui
+
+            return cmd_ui(args)
         if args.command == "summary":
             return cmd_summary(args)
     except bad_input as exc:

@@ -49,8 +49,14 @@ def wait_for(driver, cond, what, timeout=WAIT_S):
     except Exception:
         try:  # what the page said last: the reason, most of the time
             what += f" (page message: {text(driver, 'message')!r})"
+            what += f" (page log: {driver.execute_script('return window.__drivectl.log')})"
+            what += f" (browser log: {driver.get_log('browser')[-5:]})"
         except Exception:  # noqa: BLE001 - no page to ask
             pass
+        if os.environ.get("DRIVECTL_UI_DEBUG"):
+            import faulthandler
+
+            faulthandler.dump_traceback(all_threads=True)
         raise AssertionError(f"timed out waiting for: {what}") from None
 
 
@@ -130,7 +136,7 @@ def test_holding_jog_moves_x_and_release_or_a_lost_connection_stops_it_within_th
         ActionChains(browser).click_and_hold(button).perform()
         moved_from = x.position
         wait_for(browser, lambda: x.position > moved_from + 0.3e-3, "x moving again")
-        browser.execute_script("window.__drivectl.ws.onclose = null; window.__drivectl.ws.close();")
+        browser.execute_script("const w = window.__drivectl.ws; w.onclose = null; w.close();")
         wait_for(browser, lambda: len(get_json(base, "/api/jogs", token)) == 2, "the second jog's end logged")
         ev = get_json(base, "/api/jogs", token)[1]
         assert ev["why"] in ("connection lost", "dead man (renewals stopped)")
@@ -168,16 +174,19 @@ def test_the_scope_shows_live_data_freezes_with_cursors_and_saves_a_trace(tmp_pa
         tid(browser, "tab-scope").click()
 
         def series(name):
+            """What the chart shows of a channel: points, first and last time, first, last, min and max value."""
             return browser.execute_script(
                 "const d = document.querySelector('[data-testid=scope]').data || [];"
-                f"const s = d.find(s => s.name.startsWith('{name} ')); return s ? [s.x, s.y] : null;")
+                f"const s = d.find(s => s.name.startsWith('{name} ')); if (!s || !s.x.length) return null;"
+                "return {n: s.x.length, t0: s.x[0], t1: s.x[s.x.length - 1], y0: s.y[0], y1: s.y[s.y.length - 1],"
+                " min: Math.min(...s.y), max: Math.max(...s.y)};")
 
-        wait_for(browser, lambda: series("position") is not None and len(series("position")[0]) > 50, "data plotted")
-        t1 = series("position")[0][-1]
-        wait_for(browser, lambda: series("position")[0][-1] > t1 + 0.2, "the scope's time axis grows (live)")
-        xs, ys = series("position")
-        assert abs(ys[-1] - x.position * 1e3) < 0.01  # mm: the axis's own value
-        assert max(ys) == pytest.approx(3.0, abs=0.02)
+        wait_for(browser, lambda: (series("position") or {}).get("n", 0) > 50, "data plotted")
+        t1 = series("position")["t1"]
+        wait_for(browser, lambda: series("position")["t1"] > t1 + 0.2, "the scope's time axis grows (live)")
+        s = series("position")
+        assert abs(s["y1"] - x.position * 1e3) < 0.01  # mm: the axis's own value
+        assert s["max"] == pytest.approx(3.0, abs=0.02)
         samples = browser.execute_script("return window.__drivectl.scope.samples")
         assert samples > 500  # 1 kHz samples arrived; the plot shows them decimated per pixel column
         shot(browser, tmp_path, "ui-scope")
@@ -196,9 +205,9 @@ def test_the_scope_shows_live_data_freezes_with_cursors_and_saves_a_trace(tmp_pa
         tid(browser, "move-to-x").click()
         tid(browser, "tab-scope").click()
         wait_for(browser, lambda: "frozen" in text(browser, "scope-state"), "the triggered capture shown")
-        xs, ys = series("position")
-        assert xs[0] == pytest.approx(-0.05, abs=2e-3) and xs[-1] == pytest.approx(0.4, abs=2e-3)
-        assert ys[0] == pytest.approx(3.0, abs=0.01) and ys[-1] < 2.0  # the move in the window
+        s = series("position")
+        assert s["t0"] == pytest.approx(-0.05, abs=2e-3) and s["t1"] == pytest.approx(0.4, abs=2e-3)
+        assert s["y0"] == pytest.approx(3.0, abs=0.01) and s["y1"] < 2.0  # the move in the window
         browser.execute_script("window.__drivectl.setCursor(-0.01); window.__drivectl.setCursor(0.3);")
         rows = tid(browser, "scope-readout").find_elements(By.TAG_NAME, "tr")
         assert len(rows) >= 3 and "B − A" in rows[0].text
@@ -214,17 +223,43 @@ def test_the_scope_shows_live_data_freezes_with_cursors_and_saves_a_trace(tmp_pa
         tid(browser, "tab-traces").click()
         wait_for(browser, lambda: browser.find_elements(By.CSS_SELECTOR, f'[data-testid="trace-row-{csv[0].name}"]'),
                  "the saved trace listed")
-        tid(browser, f"trace-row-{csv[0].name}").click()
+        browser.execute_script(f"document.querySelector('[data-testid=\"trace-row-{csv[0].name}\"]').click()")
         wait_for(browser, lambda: "max_um" in text(browser, "trace-summary"), "its summary")
         n = browser.execute_script("return document.querySelector('[data-testid=trace-plot]').data.length")
         assert n >= 3
         shot(browser, tmp_path, "ui-traces")
 
-        # Explain on it: the report and its plot
+        # Explain refuses a capture too short to decide: one visible line, as the command says it
         tid(browser, "tab-explain").click()
+        Select(tid(browser, "explain-trace")).select_by_visible_text(csv[0].name)
         tid(browser, "explain-run").click()
         wait_for(browser, lambda: text(browser, "explain-state") in ("failed",) or
                  text(browser, "explain-state").startswith("done"), "explain finished", timeout=300)
+        assert text(browser, "explain-state") == "failed" and "cannot decide" in text(browser, "message")
+
+
+def test_explain_on_a_recorded_run_shows_its_report_and_plot(tmp_path, browser):
+    from drivectl.profiles.library import load_profile
+
+    out = tmp_path / "traces"
+    with running_console(out, axes=("x",)) as (console, web, url):
+        m = console.m
+
+        def record() -> None:  # a run of x's profile through the session, on the console's own thread
+            x = m.axes["x"]
+            x.enable()
+            h = x.run(load_profile(m.config.axis("x").profile), approach=True)
+            h.wait(120)
+            h.trace.write(out / "x-run.csv")
+
+        console.conductor.call(record).result(600)
+        open_page(browser, url)
+        tid(browser, "tab-explain").click()
+        wait_for(browser, lambda: "x-run.csv" in text(browser, "explain-trace"), "the run listed")
+        Select(tid(browser, "explain-trace")).select_by_visible_text("x-run.csv")
+        tid(browser, "explain-run").click()
+        wait_for(browser, lambda: text(browser, "explain-state") in ("failed",) or
+                 text(browser, "explain-state").startswith("done"), "explain finished", timeout=600)
         assert text(browser, "explain-state").startswith("done"), text(browser, "message")
         assert "gap" in text(browser, "explain-report")
         wait_for(browser, lambda: browser.execute_script(

@@ -99,4 +99,12 @@ def make_driver(chrome: str, driver_path: str, profile: Path) -> Any:
         opts.add_argument(f)
     opts.add_argument(f"--user-data-dir={profile}")
     os.environ.setdefault("SE_OFFLINE", "true")  # never let selenium fetch a driver: Debian's is given
-    return webdriver.Chrome(service=Service(executable_path=driver_path), options=opts)
+    from selenium.common.exceptions import SessionNotCreatedException
+
+    for attempt in range(3):  # a loaded machine can miss chromedriver's start-up deadline: try again
+        try:
+            return webdriver.Chrome(service=Service(executable_path=driver_path), options=opts)
+        except SessionNotCreatedException:
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")

@@ -13,6 +13,7 @@ import asyncio
 import importlib.util
 import itertools
 import json
+import os
 import secrets
 import sys
 import time
@@ -33,6 +34,7 @@ STATIC = Path(__file__).resolve().parent / "static"
 COOKIE = "drivectl_ui"
 #: how often the page gets the machine's status and the scope's new samples (s)
 PUSH_S = 0.1
+DEBUG = bool(os.environ.get("DRIVECTL_UI_DEBUG"))
 
 
 def plotly_js() -> Path | None:
@@ -171,6 +173,8 @@ class WebConsole:
             return
         await ws.accept()
         client = f"c{next(self._clients)}"
+        if DEBUG:
+            print(f"drivectl ui: connection {client} open", file=sys.stderr)
         feed = ScopeFeed(self.console.m)
         pusher = asyncio.create_task(self._push(ws, feed))
 
@@ -212,9 +216,13 @@ class WebConsole:
                     continue
                 if line or op != "jog":
                     await reply(rid, True, line)
-        except (WebSocketDisconnect, RuntimeError):
+        except WebSocketDisconnect:
             pass
+        except Exception as exc:  # noqa: BLE001 - say why this page lost its connection; the console goes on
+            print(f"drivectl ui: connection {client} closed: {type(exc).__name__}: {exc}", file=sys.stderr)
         finally:
+            if DEBUG:
+                print(f"drivectl ui: connection {client} closed", file=sys.stderr)
             pusher.cancel()
             self.console.client_gone(client)
 

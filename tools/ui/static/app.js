@@ -37,16 +37,28 @@ const token = new URLSearchParams(location.search).get("token") || "";
 const withToken = (path) => path + (path.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
 
 // ---------------------------------------------------------------------------------------------- connection
+function note(what) { (ui.log = ui.log || []).push(`${(performance.now() / 1000).toFixed(2)} ${what}`); }
 function connect() {
+  note("connect");
   const proto = location.protocol === "https:" ? "wss" : "ws";
   const ws = new WebSocket(`${proto}://${location.host}/ws?token=${encodeURIComponent(token)}`);
   ui.ws = ws;
-  ws.onopen = () => { ui.connected = true; if (ui.scope.axis) subscribeScope(); };
-  ws.onclose = () => {
-    ui.connected = false;
-    jogStop("connection lost");
-    say("connection to the console lost: jogs stop by the dead man; reload the page to reconnect", true);
+  ws.onopen = () => {
+    ui.connected = true;
+    note("open");
+    if (ui.closes) say("reconnected to the console");
+    if (ui.scope.axis) subscribeScope();
   };
+  ws.onclose = (ev) => {
+    ui.connected = false;
+    ui.closes = (ui.closes || 0) + 1;
+    ui.lastClose = `code ${ev.code}${ev.reason ? " " + ev.reason : ""}`;
+    note(`close ${ui.lastClose}`);
+    jogStop("connection lost");
+    say(`connection to the console lost (${ui.lastClose}): any jog stops by the dead man; reconnecting…`, true);
+    setTimeout(connect, 1000);  // the console may be back (a dropped connection); a closed console stays closed
+  };
+  ws.onerror = () => note("error");
   ws.onmessage = (ev) => {
     const msg = JSON.parse(ev.data);
     if (msg.type === "status") onStatus(msg.status);
@@ -74,7 +86,7 @@ function showPage(name) {
   if (name === "traces" || name === "explain") loadTraceList();
   if (name === "scope") {
     Plotly.Plots.resize("scope");
-    if (ui.scope.live) drawScope(ui.scope.t, ui.scope.ch, "t (s, loop time)");
+    if (ui.scope.live) requestScopeDraw();
   }
 }
 for (const b of document.querySelectorAll("header nav button")) b.addEventListener("click", () => showPage(b.dataset.page));
@@ -241,7 +253,23 @@ function onScope(msg) {
   while (i < s.t.length && s.t[i] < cut) i++;
   if (i) { s.t.splice(0, i); for (const c in s.ch) s.ch[c].splice(0, i); }
   s.samples = (s.samples || 0) + msg.t.length;
-  if (s.live && scopeShown()) drawScope(s.t, s.ch, "t (s, loop time)");  // drawn only where it is seen
+  if (s.live && scopeShown()) requestScopeDraw();  // drawn only where it is seen
+}
+// at most every 250 ms, and never more than a quarter of the page's time: a slow or loaded computer
+// draws less often, it does not fall behind (the data keeps arriving whole)
+const draw = { pending: false, last: 0, took: 0 };
+function requestScopeDraw() {
+  if (draw.pending) return;
+  draw.pending = true;
+  const wait = Math.max(0, Math.max(250, 4 * draw.took) - (performance.now() - draw.last));
+  setTimeout(() => requestAnimationFrame(() => {
+    draw.pending = false;
+    if (!(ui.scope.live && scopeShown())) return;
+    const t0 = performance.now();
+    drawScope(ui.scope.t, ui.scope.ch, "t (s, loop time)");
+    draw.last = performance.now();
+    draw.took = draw.last - t0;
+  }), wait);
 }
 const scopeShown = () => !$("#page-scope").classList.contains("hidden") && !document.hidden;
 function onCapture(msg) {

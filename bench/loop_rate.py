@@ -31,7 +31,7 @@ from drivectl.profiles.library import load_profile
 def lockstep_cps(names: list[str], seconds: float, pace: bool = False) -> tuple[float, dict]:
     cfg = load_config()
     profiles = {n: load_profile(cfg.axis(n).profile, axis=n) for n in names}
-    with open_machine(cfg, names, start={n: p.start_position for n, p in profiles.items()}) as m:
+    with open_machine(cfg, names, start={n: p.start_position for n, p in profiles.items()}, paced=pace) as m:
         channels = [Channel(m.axes[n], make_controller(cfg.axis(n).controller, cfg.cycle_s,
                                                        cfg.axis(n).controller_settings, plant=m.specs[n], axis=n),
                             profiles[n], cfg.axis(n).limits) for n in names]

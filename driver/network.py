@@ -1,10 +1,12 @@
 """CAN buses and canopen networks: opened by python-can's own interface names, pumped in lockstep.
 
-``virtual`` (python-can's in-process bus) runs in lockstep: every frame a network sends is
-delivered, on the sending thread, to every network of the same :class:`Lockstep` until the bus is
-quiet; a reply (an SDO response, the TPDOs answering a SYNC) is therefore already received when the
-send returns. No notifier thread, so the order of frames never depends on timing and the same run
-gives the same trace bit for bit. Other interfaces (slcan, socketcand, socketcan) cross a process
+``virtual`` (the in-process bus) runs in lockstep: every frame a network sends is delivered, on the
+sending thread, to every network of the same :class:`Lockstep` until the bus is quiet; a reply (an SDO
+response, the TPDOs answering a SYNC) is therefore already received when the send returns. No
+notifier thread, so the order of frames never depends on timing and the same run gives the same trace
+bit for bit. Unpaced, the networks' buses are the Lockstep's own (:meth:`Lockstep.bus`,
+driver/lockstep_bus.py: frames handed over without copies); a run paced on the wall clock keeps
+python-can's virtual bus (:func:`open_bus`). Other interfaces (slcan, socketcand, socketcan) cross a process
 boundary: their networks are driven by a python-can Notifier as usual.
 """
 
@@ -22,6 +24,7 @@ import canopen
 
 from drivectl.driver.axis import AxisConfigError
 from drivectl.driver.frame_guard import FrameGuard
+from drivectl.driver.lockstep_bus import LockstepBus, LockstepLink
 from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
 
 log = logging.getLogger("drivectl.frames")
@@ -148,6 +151,15 @@ class Lockstep:
         #: the devices' wall clocks (an emulated drive's ``wall_clock(now)``), served while a run is paced
         self.wall_clocks: list[Callable[[float | None], None]] = []
         self._wall: Callable[[], float] | None = None
+        self._links: dict[str, LockstepLink] = {}
+
+    def bus(self, channel: str) -> LockstepBus:
+        """A new end of this lockstep's in-process bus ``channel`` (driver/lockstep_bus.py): the ends
+        of one channel receive each other's frames, the same Message objects, without copies."""
+        link = self._links.get(channel)
+        if link is None:
+            link = self._links[channel] = LockstepLink(channel)
+        return link.open()
 
     def pace(self, wall: Callable[[], float] | None) -> None:
         """A run paced on the wall clock ``wall`` starts (None: it ended). While it lasts the devices run on
@@ -207,6 +219,8 @@ class LockstepNetwork(canopen.Network):
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
+        #: a lockstep bus's peek (None on other buses: always polled, e.g. a FaultyBus that raises on receive)
+        self._pending = bus.pending if isinstance(bus, LockstepBus) else None
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
         #: every received frame is checked before canopen's dispatch (driver/frame_guard.py); None on an
@@ -226,6 +240,9 @@ class LockstepNetwork(canopen.Network):
     def pump(self) -> bool:
         """Deliver the frames waiting on this network's bus; True if there were any. A bus that raises
         on receive keeps the error for its own next send (another node's send must not fail for it)."""
+        pending = self._pending
+        if pending is not None and not pending():
+            return False
         got = False
         recv = self._recv
         notify = self.notify

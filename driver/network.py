@@ -211,10 +211,23 @@ class Lockstep:
             clock(now)
 
 
+#: canopen's NodeScanner records the node of these services (canopen/network.py NodeScanner.SERVICES)
+_SCANNED = frozenset(canopen.network.NodeScanner.SERVICES)
+
+
 class LockstepNetwork(canopen.Network):
-    """A canopen Network without a notifier thread: frames are pumped by :class:`Lockstep`."""
+    """A canopen Network without a notifier thread: frames are pumped by :class:`Lockstep`.
+
+    Dispatch per COB-ID: once a subscribed COB-ID has gone through canopen's ``notify``, its frames go
+    straight to canopen's own subscriber list for it (the live list, never a copy: a callback that
+    subscribes or unsubscribes another on the same COB-ID mid-run is seen on the very next frame, as
+    canopen sees it), then to the node scanner where canopen would call it. ``subscribe`` and
+    ``unsubscribe`` drop the entry, so a list canopen replaces is looked up again."""
 
     def __init__(self, bus: can.BusABC, lockstep: Lockstep):
+        #: COB-ID -> (canopen's live callback list for it, whether its node scanner looks at it); before
+        #: canopen's constructor, which subscribes already
+        self._dispatch: dict[int, tuple[list[Any], bool]] = {}
         super().__init__(bus)
         self.lockstep = lockstep
         lockstep.networks.append(self)
@@ -227,6 +240,19 @@ class LockstepNetwork(canopen.Network):
         #: emulated drive's network (the drive checks its frames itself, with CiA 301's EMCY reactions)
         self.frame_guard: FrameGuard | None = FrameGuard()
         self.handler_errors = 0
+
+    def subscribe(self, can_id: int, callback: Any) -> None:
+        super().subscribe(can_id, callback)
+        self._dispatch.pop(can_id, None)
+
+    def unsubscribe(self, can_id: int, callback: Any = None) -> None:
+        self._dispatch.pop(can_id, None)
+        super().unsubscribe(can_id, callback)
+
+    def _learn(self, can_id: int) -> None:
+        callbacks = self.subscribers.get(can_id)
+        if callbacks is not None:
+            self._dispatch[can_id] = (callbacks, can_id & 0x7F != 0 and can_id & 0x780 in _SCANNED)
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
@@ -246,6 +272,7 @@ class LockstepNetwork(canopen.Network):
         got = False
         recv = self._recv
         notify = self.notify
+        dispatch = self._dispatch
         log = self.log
         while True:
             try:
@@ -264,8 +291,18 @@ class LockstepNetwork(canopen.Network):
                 deliver_remote(self, msg.arbitration_id)  # an emulated drive's RTR handler, never as data
             elif not msg.is_error_frame and (guard is None or guard.accept(msg.arbitration_id, msg.data,
                                                                            msg.is_remote_frame)):
+                can_id = msg.arbitration_id
                 try:
-                    notify(msg.arbitration_id, msg.data, msg.timestamp)
+                    route = dispatch.get(can_id)
+                    if route is None:
+                        notify(can_id, msg.data, msg.timestamp)
+                        self._learn(can_id)
+                    else:  # what canopen's notify does, without looking the COB-ID up again
+                        data, timestamp = msg.data, msg.timestamp
+                        for callback in route[0]:
+                            callback(can_id, data, timestamp)
+                        if route[1]:
+                            self.scanner.on_message_received(can_id)
                 except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
                     # must not end the pump (in lockstep that would be the sender's cycle); counted, logged
                     self.handler_errors += 1

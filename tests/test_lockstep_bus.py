@@ -80,3 +80,41 @@ def test_open_machine_uses_the_lockstep_bus_unless_paced(paced):
         assert isinstance(net.bus, LockstepBus) is not paced
         assert isinstance(net.bus, can.BusABC)
         assert m.bus.startswith("virtual:")  # the configuration's interface, as the traces record it
+
+
+def test_per_cob_id_dispatch_follows_canopens_live_subscriber_list():
+    """A callback subscribed by another callback mid-run gets the very next frame (a snapshot of the list
+    would miss it for one frame); an emptied and re-made list is looked up again."""
+    lockstep = Lockstep()
+    master = LockstepNetwork(lockstep.bus("t-lockstep-5"), lockstep)
+    drive = LockstepNetwork(lockstep.bus("t-lockstep-5"), lockstep)
+    seen: list[str] = []
+
+    def late(can_id, data, ts):
+        seen.append(f"late {data[0]}")
+
+    def first(can_id, data, ts):
+        seen.append(f"first {data[0]}")
+        if data[0] == 1:
+            drive.subscribe(0x201, late)  # canopen appends it to the list being iterated: this frame too
+
+    drive.subscribe(0x201, first)
+    try:
+        for k in range(3):
+            master.send_message(0x201, bytes([k]))
+        assert seen == ["first 0", "first 1", "late 1", "first 2", "late 2"]
+        drive.unsubscribe(0x201, first)
+        drive.unsubscribe(0x201, late)  # canopen drops the emptied list
+        drive.subscribe(0x201, late)  # and makes a new one
+        master.send_message(0x201, bytes([3]))
+        assert seen[-1] == "late 3" and len(seen) == 6
+        assert drive.scanner.nodes == [] and master.scanner.nodes == []  # RPDOs: nothing for the scanner
+        master.subscribe(0x181, lambda *a: None)
+        drive.send_message(0x181, bytes([0]))  # a TPDO: canopen's scanner records its node, as before
+        assert master.scanner.nodes == [1]
+        master.scanner.reset()
+        drive.send_message(0x181, bytes([0]))  # now through the per-COB-ID dispatch: the scanner still sees it
+        assert master.scanner.nodes == [1]
+    finally:
+        master.disconnect()
+        drive.disconnect()

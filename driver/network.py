@@ -198,11 +198,13 @@ class Lockstep:
             self._settling = False
 
     def _deliver(self) -> None:
+        networks = self.networks
         busy = True
         while busy:
             busy = False
-            for net in self.networks:
-                if net.pump():
+            for net in networks:
+                pending = net._pending  # a lockstep bus with nothing waiting is skipped without a call
+                if (pending is None or pending()) and net.pump():
                     busy = True
 
     def _serve_wall(self, wall: Callable[[], float]) -> None:
@@ -265,10 +267,8 @@ class LockstepNetwork(canopen.Network):
 
     def pump(self) -> bool:
         """Deliver the frames waiting on this network's bus; True if there were any. A bus that raises
-        on receive keeps the error for its own next send (another node's send must not fail for it)."""
-        pending = self._pending
-        if pending is not None and not pending():
-            return False
+        on receive keeps the error for its own next send (another node's send must not fail for it).
+        :meth:`Lockstep._deliver` calls it only when the bus has frames waiting (or cannot tell)."""
         got = False
         recv = self._recv
         notify = self.notify

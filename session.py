@@ -580,10 +580,10 @@ def connect(
                                       plant=specs[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs)
+    if clock is None:
+        clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall")
     try:
-        if clock is None:
-            clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
         channels = []
         motion = {}
         for n in names:

@@ -72,7 +72,9 @@ class Recording:
 
             try:
                 for ch, head in zip(plan.channels, self._head, strict=True):
-                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head).start())
+                    # unpaced: the loop writes its own full blocks (no writer thread taking the GIL mid-cycle)
+                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head,
+                                                    inline=not paced).start())
             except BaseException:
                 self.abandon()
                 raise

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -223,7 +223,7 @@ def run_channels(
             pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
         guard = RunGuard(checks, plan.cycles, channels, pacer) if checks is not None else None
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
-        with signals as request:
+        with signals as request, one_blas_thread():
             outcome = _run_cycles(plan, rec, request, pacer, on_start, progress, guard)
         if outcome.stop is StopReason.COMPLETED and disable_at_end:
             _disable_all(channels)
@@ -234,6 +234,15 @@ def run_channels(
         if pace:
             pace_axes(channels, None)
     return rec.result(outcome, pacer)
+
+
+def one_blas_thread() -> AbstractContextManager[object]:
+    """A context in which BLAS (OpenBLAS under numpy) runs on the calling thread only: the cycle's
+    products are a few elements, and a BLAS worker left spinning after each burned about 10 us of CPU
+    per cycle on the other core. Process-wide while it lasts (threadpoolctl), restored after."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 @dataclass

@@ -295,3 +295,35 @@ def test_every_real_eds_is_brought_up_and_traced_or_refused_in_one_line(tmp_path
         assert str(EDS / name) in outcome.detail and "\n" not in outcome.detail
     else:
         assert outcome.max_um <= 2.0
+
+
+def test_doctor_drive_section(tmp_path):
+    from drivectl.tools.cli.doctor_drive import drive_section
+
+    ok, lines = drive_section(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), "x")
+    text = "\n".join(lines)
+    assert ok and "0x6502" in text and "cyclic synchronous torque (10)" in text and "RPDO deadline" in text
+    assert "enabled at zero torque, then disabled" in text
+    eds = _without(tmp_path / "d.eds", cia402.TARGET_TORQUE)
+    ok, lines = drive_section(load_config(_config(tmp_path, eds)), "x")
+    assert not ok and lines == [f"drive: refused: axis x: EDS {eds}: drive has no torque setpoint 0x6071: drivectl "
+                                "closes the loop in torque"]
+
+
+def test_emulate_eds_is_checked_before_the_bus_opens(capsys, tmp_path):
+    assert main(["emulate", "--axis", "x", "--slcan", "--eds", str(tmp_path / "none.eds")]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"drivectl: emulate: --eds {tmp_path / 'none.eds'}: no such file"]
+
+
+def test_the_bus_budget_counts_the_mapping_the_drive_gets(tmp_path):
+    from drivectl.machine.bus_budget import machine_load
+
+    od = _od()
+    _fix(od, 0x1A00, [0x60410010, 0x60640020, 0x60610008])  # a fixed TPDO1 of 7 bytes
+    for s in range(4):
+        if s in od[0x1A00].subindices:
+            od[0x1A00][s].default_raw = None
+    eds = _export(od, tmp_path / "fixed.eds")
+    load = machine_load(load_config(_config(tmp_path, eds)), ["x"])
+    # SYNC, TPDO1 7 bytes, TPDO2 6, RPDO1 4 (47 + 8 n bits each)
+    assert load.bits_nominal == 47 + (47 + 56) + (47 + 48) + (47 + 32)

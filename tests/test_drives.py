@@ -327,3 +327,21 @@ def test_the_bus_budget_counts_the_mapping_the_drive_gets(tmp_path):
     load = machine_load(load_config(_config(tmp_path, eds)), ["x"])
     # SYNC, TPDO1 7 bytes, TPDO2 6, RPDO1 4 (47 + 8 n bits each)
     assert load.bits_nominal == 47 + (47 + 56) + (47 + 48) + (47 + 32)
+
+
+def test_drive_get_by_the_eds_name(tmp_path, capsys):
+    cfg = str(_config(tmp_path, EMULATED_DRIVE_EDS))
+    assert main(["--config", cfg, "drive", "get", "--axis", "x", "Identity object.Vendor-ID"]) == 0
+    assert capsys.readouterr().out.startswith("0x1018:1 Vendor-ID = ")
+    assert main(["--config", cfg, "drive", "get", "--axis", "x", "Max torque"]) == 0
+    assert capsys.readouterr().out.startswith("0x6072:0 Max torque = ")
+
+
+def test_a_mode_the_drive_does_not_take_is_said(tmp_path, monkeypatch):
+    from drivectl.driver.axis import AxisConfigError
+    from drivectl.plant_emulator.node402 import EmulatedDrive
+
+    # a drive that acknowledges 0x6060 but keeps showing no mode in 0x6061
+    monkeypatch.setattr(EmulatedDrive, "_set_mode", lambda self, mode: setattr(self, "mode", 0))
+    with pytest.raises(AxisConfigError, match=r"node 1: mode not accepted: 0x6061 = 0 after 0x6060 = 10"):
+        open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"])

@@ -131,6 +131,12 @@ def cmd_config(args: argparse.Namespace) -> int:
         text = DEFAULT_CONFIG_TOML
         if args.eds is not None:
             from drivectl.machine.eds_config import starter_config
+            from drivectl.tracefile.stream import safe_name
+
+            if not safe_name(args.axis):
+                print(f"drivectl: --axis {args.axis!r}: an axis name names its trace files: letters, digits, _ + - "
+                      "only", file=sys.stderr)
+                return 2
 
             text = starter_config(args.eds, args.axis)  # a drive without an essential: one line, nothing written
         atomic_write_text(path, text)

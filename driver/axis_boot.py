@@ -138,11 +138,15 @@ class AxisBoot:
             raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}", FaultKind.BUS_ERROR) from None
 
     def _check_identity(self) -> None:
+        if not self._has(cia402.IDENTITY, 1, writable=False):
+            self.identity = Identity()  # no 0x1018 in the EDS: nothing to check against
+            return
         vendor = self._sdo(cia402.IDENTITY, 1)
-        product = self._sdo(cia402.IDENTITY, 2)
+        product = self._sdo(cia402.IDENTITY, 2) if self._has(cia402.IDENTITY, 2, writable=False) else 0
         want = self.identity
         if (want.vendor_id is not None and vendor != want.vendor_id) or (
-            want.product_code is not None and product != want.product_code
+            want.product_code is not None and self._has(cia402.IDENTITY, 2, writable=False)
+            and product != want.product_code
         ):
             raise AxisConfigError(
                 f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "

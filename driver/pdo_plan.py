@@ -161,8 +161,8 @@ def slots(od: odt.ObjectDictionary, rx: bool) -> list[PdoSlot]:
         if comm not in od or mapping not in od:
             continue
         cob = _sub(od, comm, 1)
-        if cob is None:
-            continue
+        if cob is None or (not cob.writable and (object_value(cob) or 0) & 0x80000000):
+            continue  # no COB-ID, or one fixed as invalid: a PDO the drive never sends or takes
         types, type_writable = _types(_sub(od, comm, 2), rx)
         count = _sub(od, mapping, 0)
         entries = [s for s in od[mapping].subindices if s] if not isinstance(od[mapping], odt.ODVariable) else []

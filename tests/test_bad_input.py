@@ -1,5 +1,5 @@
 """Issue 7 point 7, the bad-input matrix: configuration, profile, plant, trace and EDS files with a wrong
-type, a missing key, an out-of-range value, a truncated or garbled CSV, an EDS without a required object,
+type, a missing key, an out-of-range value, a truncated or garbled CSV, an EDS without an essential object,
 an SDO abort from the drive while it is configured, and ``config init`` over an existing file.
 
 Every case runs the real CLI entry point in-process and must give exit code 2, exactly one line on stderr

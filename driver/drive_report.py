@@ -97,3 +97,15 @@ def enable_attempt(axis: CanopenAxis) -> tuple[bool, str]:
     if enabled:
         return True, f"enabled at zero torque, then disabled (the drive reports {after.value})"
     return False, reason
+
+
+def standing_blocker(axis: CanopenAxis) -> str:
+    """What would stop the drive enabling, from what it reports now, without enabling it (a fault and its
+    code, no DC link voltage); "none seen" when its state allows an enable (STO or a mode refused show only
+    in an attempt: :func:`enable_attempt`)."""
+    state = axis.refresh_state()
+    if state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+        return axis.enable_blocker()
+    if state in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCHED_ON) and not axis.statusword & 0x0010:
+        return axis.enable_blocker()
+    return f"none seen ({state.value}, statusword 0x{axis.statusword:04X}; not tried: nothing is enabled here)"

@@ -345,3 +345,13 @@ def test_a_mode_the_drive_does_not_take_is_said(tmp_path, monkeypatch):
     monkeypatch.setattr(EmulatedDrive, "_set_mode", lambda self, mode: setattr(self, "mode", 0))
     with pytest.raises(AxisConfigError, match=r"node 1: mode not accepted: 0x6061 = 0 after 0x6060 = 10"):
         open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"])
+
+
+def test_standing_blocker_reads_a_fault_without_enabling(tmp_path):
+    from drivectl.driver.drive_report import standing_blocker
+
+    with open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"]) as m:
+        assert standing_blocker(m.axes["x"]).startswith("none seen (Switch On Disabled")
+        m.drives["x"].fault(0x4310)
+        m.axes["x"].read()
+        assert "0x603F = 0x4310 (drive temperature too high)" in standing_blocker(m.axes["x"])

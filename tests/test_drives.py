@@ -355,3 +355,10 @@ def test_standing_blocker_reads_a_fault_without_enabling(tmp_path):
         m.drives["x"].fault(0x4310)
         m.axes["x"].read()
         assert "0x603F = 0x4310 (drive temperature too high)" in standing_blocker(m.axes["x"])
+
+
+def test_doctor_command_says_the_drive(tmp_path, capsys):
+    cfg = str(_config(tmp_path, EMULATED_DRIVE_EDS))
+    assert main(["--config", cfg, "doctor", "--axis", "x"]) == 0
+    out = capsys.readouterr().out
+    assert "0x6502" in out and "enabled at zero torque, then disabled" in out

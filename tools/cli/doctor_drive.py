@@ -37,6 +37,17 @@ def drive_section(cfg: Any, name: str) -> tuple[bool, list[str]]:
         return ok, lines
 
 
+def add_doctor_parser(sub: Any) -> None:
+    """``drivectl doctor --axis NAME`` with the drive section only: registered only where no fuller ``doctor``
+    (the host's preflight) is (tools/cli/main.py), so the two never clash."""
+    if "doctor" in getattr(sub, "choices", {}):
+        return
+    d = sub.add_parser("doctor", help="the drive: identity, 0x6502, mode, mapping, watchdogs, and whether it "
+                       "enables (at zero torque, disabled after) or why not")
+    d.add_argument("--axis", default="x")
+    d.set_defaults(doctor_drive=True)
+
+
 def cmd_doctor_drive(args: Any) -> int:
     """The drive section alone (``drivectl doctor --axis NAME`` where no fuller doctor is installed)."""
     from drivectl.machine.config import load_config

@@ -99,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     from drivectl.tools.cli.drive import add_drive_parser
 
     add_drive_parser(sub)
+    from drivectl.tools.cli.doctor_drive import add_doctor_parser as add_drive_doctor
+
+    add_drive_doctor(sub)  # the drive section as `doctor`, unless a fuller doctor registered that name first
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -113,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
 #: commands that talk to drives: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into
 #: the bus I/O (drivectl.controllers.runtime.interrupt); elsewhere (tune's search, explain, plot) they end at once
 TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate",
-                   "drive")
+                   "drive", "doctor")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -189,6 +192,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
+        if getattr(args, "doctor_drive", False):
+            from drivectl.tools.cli.doctor_drive import cmd_doctor_drive
+
+            return cmd_doctor_drive(args)
         if args.command == "drive":
             from drivectl.tools.cli.drive import cmd_drive
 

@@ -409,6 +409,7 @@ class AxisControl:
             rt.position -= delta
             rt.reference -= delta
             rt.ch.last_position = None
+            rt.ch.controller.shift(delta)  # an observer's estimate moves too (mbc: a 5 mm step ran the axis away)
 
         self._m.loop.submit(go)
 
@@ -554,6 +555,9 @@ def connect(
     realtime: bool = True,
     gc_control: bool = True,
     gil_switch: bool = True,
+    effects: Sequence[tuple[str, dict[str, float]]] = (),
+    noise: float = 0.0,
+    seed: int = 0,
 ) -> Machine:
     """Connect to the machine of ``config`` (a file, a MachineConfig, or None: $DRIVECTL_CONFIG, else
     the embedded emulated machine) and start its resident loop.
@@ -564,10 +568,13 @@ def connect(
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
     fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
     ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see
-    controllers/runtime/loop.py).
+    controllers/runtime/loop.py). ``effects`` (``[("stribeck", {"excess_force": 15.0, "velocity": 0.002})]``)
+    and ``noise`` (std of a Gaussian force noise, effort unit; ``seed``) are what the emulated drives play
+    beyond their plant, as ``drivectl trace --effect/--noise``: each controller believes its axis's
+    ``model`` (else its ``plant``) without them.
     """
     from drivectl.controllers.registry import make_controller
-    from drivectl.machine.build import open_machine, plant_specs
+    from drivectl.machine.build import model_specs, open_machine, plant_specs
     from drivectl.machine.config import MachineConfig, load_config
     from drivectl.plant_emulator.faults import parse_fault
 
@@ -575,12 +582,13 @@ def connect(
     names = list(axes) if axes is not None else list(cfg.axes)
     for n in names:
         cfg.axis(n)
-    specs = plant_specs(cfg, names)
+    specs = plant_specs(cfg, names, effects=effects)
+    models = model_specs(cfg, names, plants=specs)
     controllers = {n: make_controller(cfg.axis(n).controller, cfg.cycle_s, cfg.axis(n).controller_settings,
-                                      plant=specs[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
+                                      plant=models[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs)
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, effects=effects, noise=noise, seed=seed)
     try:
         if clock is None:
             clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"

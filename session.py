@@ -45,6 +45,7 @@ from drivectl.controllers.runtime.loop import (
     ServoLoop,
     drive_error,
 )
+from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
@@ -188,16 +189,38 @@ class AxisControl:
             raise LimitError(f"axis {self.name}: {what}: {target:.6f} m is outside the soft limits "
                              f"[{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; nothing moved")
 
-    def _command(self, kind: str, target: float | None, apply: Any) -> Move:
+    def _plan(self, target: float, speed: float | None) -> tuple[float, Any] | None:
+        """The controller's preview of a move to ``target`` from where the reference rests now, computed
+        here, outside the loop's cycle, as a run's is (None: the axis is moving, or nothing to plan).
+        Installed by the command only if the reference still rests there when it is applied."""
+        rt = self._rt
+        traj = rt.traj
+        if traj._moving or rt.run is not None or rt.handle is not None:
+            return None
+        start = traj.position
+        try:
+            plan = PlannedMove(start, target, rt.motion, speed)
+        except ValueError:
+            return None
+        dt = self._m.loop.dt
+        n = min(int(math.ceil(plan.duration / dt)) + 2, int(PREVIEW_S / dt))
+        # the loop's Trajectory gives the move's first reference one cycle after the command: times from dt
+        preview = run_preview(rt.ch.controller, plan, dt * (np.arange(n) + 1.0))
+        return (start, preview) if preview is not None else None
+
+    def _command(self, kind: str, target: float | None, apply: Any, plan: tuple[float, Any] | None = None) -> Move:
         handle = Move(self._m.loop, self.name, kind, target)
         rt = self._rt
 
         def go() -> None:
             if not _take_over(rt, handle, kind):
                 return
+            planned = plan is not None and rt.run is None and not rt.traj._moving and rt.traj.position == plan[0]
             rt.run = None
             rt.jog_until = 0
             apply()
+            if planned:
+                rt.ch.controller.use_preview(plan[1])
             rt.handle = handle
             handle.status = "moving"
             rt.move_started = True
@@ -211,7 +234,8 @@ class AxisControl:
         self._check_target("move_to", position)
         if speed is not None and not (math.isfinite(speed) and speed > 0):
             raise LimitError(f"axis {self.name}: move_to: speed must be > 0 m/s, got {speed!r}")
-        return self._command("move", position, lambda: self._rt.traj.move_to(position, speed))
+        plan = self._plan(position, speed)
+        return self._command("move", position, lambda: self._rt.traj.move_to(position, speed), plan)
 
     def move_by(self, distance: float, *, speed: float | None = None) -> Move:
         """A move of ``distance`` (m) from where the reference stands (the last target)."""
@@ -260,8 +284,7 @@ class AxisControl:
             rt.traj.move_to(toward, speed)
             rt.jog_until = loop.cycle + deadman
 
-        handle = self._command("jog", velocity, apply)
-        return handle
+        return self._command("jog", velocity, apply, self._plan(toward, speed))
 
     def stop(self, why: str = "stopped") -> Move:
         """A controlled stop (ruckig, within the motion limits); the axis then holds where it stopped."""
@@ -275,6 +298,7 @@ class AxisControl:
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
                 old._end("stopped", rt, why)
+            rt.ch.controller.use_preview(None)  # the move's plan ends here (the stop is planned in the cycle)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration

@@ -16,7 +16,11 @@ peak-to-peak <= 0.5 um; stribeck and noise <= 3 um.
 ``worst_stribeck_um``, ``worst_noise_um`` (x), each over the default controllers, and ``rows`` (one per
 run: axis, controller, default, case, command, max_um, peak_to_peak_um, status).
 
+``--move-cost``: mbc's cost per cycle of a session move with the move's preview against the extrapolation
+fallback (issue 26 point 4), on SimAxis; wall-clock figures, disturbed by other load.
+
 Usage: .venv/bin/python bench/standstill.py [--json] [--defaults] [--axes x,y,z] [--controllers mbc,asmc]
+       [--move-cost]
 """
 
 from __future__ import annotations
@@ -104,6 +108,46 @@ def session_rows(cfg, name: str, controller: str, case: str, default: bool) -> l
     return rows
 
 
+def move_cost(name: str, planned: bool) -> dict:
+    """mbc's cost per cycle of a 5 mm move_by on SimAxis (no bus: the law alone), with the move's preview
+    installed (planned) or without (the extrapolation fallback): mean and median us per step over the
+    move's cycles, and how many of them ran on the table."""
+    import time
+
+    import drivectl
+    from drivectl.machine.config import load_config
+
+    cfg = load_config()
+    ac = cfg.axis(name)
+    cfg = replace(cfg, axes={name: replace(ac, controller="mbc", controller_settings={})})
+    with drivectl.connect(cfg, axes=[name], sim=True, clock="lockstep", fault_dir=None) as m:
+        a = m.axes[name]
+        a.enable()
+        m.advance(0.1)
+        if not planned:
+            a._plan = lambda *args: None  # the session as it was: no plan for a move
+        c = a._rt.ch.controller
+        inner = c.step
+        costs, table = [], []
+
+        def timed(reference, feedback):
+            tab, k = c._table, c._k
+            table.append(tab is not None and k < len(tab[0]) and abs(reference.position - tab[0][k]) <= 1e-12)
+            t0 = time.perf_counter()
+            u = inner(reference, feedback)
+            costs.append(time.perf_counter() - t0)
+            return u
+
+        c.step = timed
+        h = a.move_by(0.005)
+        m.run_until(lambda: a._rt.traj.arrived, 5)
+        moving = len(costs)
+        h.wait(5)
+    us = np.asarray(costs[:moving]) * 1e6
+    return {"axis": name, "planned": planned, "cycles": moving, "table_rows": int(sum(table[:moving])),
+            "mean_us": round(float(us.mean()), 1), "median_us": round(float(np.median(us)), 1)}
+
+
 def worst(rows: list[dict], case: str, key: str) -> float | None:
     sel = [r for r in rows if r["default"] and r["case"] == case]
     if not sel:
@@ -119,7 +163,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--defaults", action="store_true", help="only each axis's default controller")
     ap.add_argument("--axes", default="x,y,z")
     ap.add_argument("--controllers", default=",".join(CONTROLLERS))
+    ap.add_argument("--move-cost", action="store_true", help="only mbc's per-cycle cost of a move, with and "
+                    "without the move's preview (issue 26 point 4)")
     args = ap.parse_args(argv)
+    if args.move_cost:
+        for name in ("x", "z"):
+            for planned in (False, True):
+                r = move_cost(name, planned)
+                print(f"{name} mbc move_by 5 mm {'with its preview   ' if planned else 'extrapolated (old)'}: "
+                      f"{r['cycles']} cycles, {r['table_rows']} on the table, step {r['mean_us']} us mean, "
+                      f"{r['median_us']} us median", flush=True)
+        return 0
     from drivectl.machine.config import load_config
 
     cfg = load_config()

@@ -246,6 +246,7 @@ class Mbc(Controller):
         self._hold_band = float(s.standstill_band_m)
         self._hold_gain = float(d.K[n - 2]) * self.dt / float(s.standstill_s)
         self._design_for = key
+        self._rest = (math.nan, 0.0, 0.0)
 
     def reset(self) -> None:
         self._ensure_design()
@@ -257,6 +258,7 @@ class Mbc(Controller):
         self._u_prev = 0.0  # net command sent last cycle (acting now)
         self._fk = 0.0  # the friction compensation in it
         self._k = 0  # cycle index into the prepared table
+        self._rest: tuple[float, float, float] = (math.nan, 0.0, 0.0)  # (position, row) of the last hold
 
     @property
     def spread(self) -> float:
@@ -315,6 +317,9 @@ class Mbc(Controller):
         tab = self._table
         if tab is not None and k < len(tab[0]) and abs(reference.position - tab[0][k]) <= 1e-12:
             return tab[1][k], tab[2][k]
+        rest = reference.velocity == 0.0 and reference.acceleration == 0.0 and reference.jerk == 0.0
+        if rest and reference.position == self._rest[0]:
+            return self._rest[1], self._rest[2]  # a hold: the same row every cycle, computed once
         dt = self.dt
         ext = _Extrapolated(reference)
         delay = self.model.extra_delay / dt
@@ -323,6 +328,8 @@ class Mbc(Controller):
         uff = float(self.model.held_effort(ext, tt, self.spread)[0]) if s.feedforward else 0.0
         fk = float(self.model.held_known_forces(ext, tt, self.spread)[0]) if s.friction_ff else 0.0
         xref = self.model.reference_states(ext, np.array([dt, 2 * dt]), self.spread)[0]
+        if rest:
+            self._rest = (reference.position, uff + float(xref @ self.d.K), fk)
         return uff + float(xref @ self.d.K), fk
 
     def loop_matrix(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:

@@ -74,6 +74,7 @@ profile = "circle"
 encoder_m_per_count = 76.29e-9
 [axes.y.controller_settings]
 law = 14
+standstill_gain = 300.0         # N/(um s): integral action at rest, where the law alone stands off (docs/standstill.md)
 [axes.y.limits]
 position_m = [-0.1, 0.1]
 max_effort = 2000.0

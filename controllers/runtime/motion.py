@@ -170,3 +170,49 @@ class Trajectory:
         # ruckig refused the input (cannot happen with validated limits): hold where the reference is
         self.hold(self.position)
         return Reference(self.position)
+
+
+#: the longest move previewed, s (a jog runs toward the soft limit; its dead man stops it long before)
+PREVIEW_S = 5.0
+
+
+class PlannedMove:
+    """A move from rest to rest, planned whole by ruckig's offline calculation, as a profile (``sample``
+    at any times, holding its ends outside [0, duration]). Bit for bit what the loop's :class:`Trajectory`
+    outputs cycle by cycle for the same input (tests/test_standstill.py), so a controller's preview of it
+    (controllers/base.py ``preview``) is computed outside the cycle when the command is given, as a run's
+    is, and the move runs on the table instead of an extrapolation."""
+
+    def __init__(self, start: float, target: float, limits: MotionLimits, vmax: float | None = None):
+        inp = ruckig.InputParameter(1)
+        inp.current_position = [start]
+        inp.target_position = [target]
+        inp.max_velocity = [min(vmax, limits.max_velocity) if vmax else limits.max_velocity]
+        inp.max_acceleration = [limits.max_acceleration]
+        inp.max_jerk = [limits.max_jerk]
+        self.start, self.target = start, target
+        self._traj = ruckig.Trajectory(1)
+        result = ruckig.Ruckig(1).calculate(inp, self._traj)
+        prof = self._traj.profiles[0][0]
+        if result not in (ruckig.Result.Working, ruckig.Result.Finished) or prof.brake.duration or prof.accel.duration:
+            raise ValueError("ruckig: no single-phase profile for this move")
+        self.duration = float(self._traj.duration)
+        self._edges = [0.0]
+        for dt in prof.t:
+            self._edges.append(self._edges[-1] + dt)
+        self._jerks = list(prof.j)
+
+    def sample(self, t: Any) -> tuple[Any, Any, Any, Any]:
+        import numpy as np
+
+        t = np.asarray(t, dtype=float)
+        out = np.empty((4, t.size))
+        at, dur, edges, jerks = self._traj.at_time, self.duration, self._edges, self._jerks
+        for i, ti in enumerate(t.ravel().tolist()):
+            if ti <= 0.0 or ti >= dur:
+                out[:, i] = (self.start if ti <= 0.0 else self.target, 0.0, 0.0, 0.0)
+                continue
+            p, v, a = at(ti)
+            seg = next((s for s in range(7) if ti < edges[s + 1]), 6)
+            out[:, i] = (p[0], v[0], a[0], jerks[seg])
+        return tuple(row.reshape(t.shape) for row in out)  # type: ignore[return-value]

@@ -47,8 +47,9 @@ max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapo
 rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): it stops by itself; 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
-# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, 0.03 um off
-# where a move ends against 4 um (ASMC has no integral action against the Coulomb friction), with an
+# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
+# 0.06 um after a move against 4 um (paper 004's law has no integral action against the Coulomb friction;
+# docs/standstill.md), with an
 # unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over
 # the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
 # (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle

@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import ruckig
 
 from drivectl.profiles.base import Reference
@@ -197,22 +198,22 @@ class PlannedMove:
         if result not in (ruckig.Result.Working, ruckig.Result.Finished) or prof.brake.duration or prof.accel.duration:
             raise ValueError("ruckig: no single-phase profile for this move")
         self.duration = float(self._traj.duration)
-        self._edges = [0.0]
-        for dt in prof.t:
-            self._edges.append(self._edges[-1] + dt)
-        self._jerks = list(prof.j)
+        # the seven phases of constant jerk: their start times and the state at each start, integrated as
+        # ruckig integrates them (p0 + t (v0 + t (a0/2 + t j/6))), so a sample is one numpy expression
+        self._edges = np.concatenate([[0.0], np.cumsum(prof.t)])
+        self._p, self._v, self._a = np.asarray(prof.p), np.asarray(prof.v), np.asarray(prof.a)
+        self._j = np.asarray(prof.j)
 
     def sample(self, t: Any) -> tuple[Any, Any, Any, Any]:
-        import numpy as np
-
-        t = np.asarray(t, dtype=float)
-        out = np.empty((4, t.size))
-        at, dur, edges, jerks = self._traj.at_time, self.duration, self._edges, self._jerks
-        for i, ti in enumerate(t.ravel().tolist()):
-            if ti <= 0.0 or ti >= dur:
-                out[:, i] = (self.start if ti <= 0.0 else self.target, 0.0, 0.0, 0.0)
-                continue
-            p, v, a = at(ti)
-            seg = next((s for s in range(7) if ti < edges[s + 1]), 6)
-            out[:, i] = (p[0], v[0], a[0], jerks[seg])
-        return tuple(row.reshape(t.shape) for row in out)  # type: ignore[return-value]
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        i = np.clip(np.searchsorted(self._edges, t, side="right") - 1, 0, 6)
+        tau = t - self._edges[i]
+        j = self._j[i]
+        a0, v0 = self._a[i], self._v[i]
+        p = self._p[i] + tau * (v0 + tau * (a0 / 2 + tau * j / 6))
+        v = v0 + tau * (a0 + tau * j / 2)
+        a = a0 + tau * j
+        rest = t >= self.duration
+        p = np.where(rest, self.target, p)
+        zero = np.where(rest, 0.0, 1.0)
+        return p, v * zero, a * zero, j * zero * (t > 0.0)

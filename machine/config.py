@@ -219,6 +219,11 @@ class AxisConfig:
     motion: Any = None
     homing: Any = None
     emulator: Any = None
+    #: [axes.NAME] sdo_init: (index, sub-index, value) written before enable and read back (vendor objects)
+    sdo_init: tuple[tuple[int, int, int], ...] = ()
+    #: where rated_effort came from ("FILE: axes.NAME.rated_effort"), None: the built-in default (a drive without
+    #: 0x6076 then refuses: the effort of 1000 per mille must come from the motor's data)
+    rated_effort_source: str | None = field(default=None, compare=False)
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -305,7 +310,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
                    "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
-                   "homing", "emulator", "last_resort"}
+                   "homing", "emulator", "last_resort", "sdo_init"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -379,6 +384,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
             **_session_tables(src, k, raw),
             last_resort=_choice(src, f"{k}.last_resort", raw.get("last_resort", "nmt-reset"), LAST_RESORTS),
+            sdo_init=_sdo_init(src, f"{k}.sdo_init", raw.get("sdo_init", [])),
+            rated_effort_source=f"{src}: {k}.rated_effort" if "rated_effort" in raw else None,
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -387,6 +394,27 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
     return MachineConfig(src, cycle, axes, bus, checks)
+
+
+def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:
+    """[[index, sub, value], ...] or [[axes.NAME.sdo_init]] tables of index, sub, value: integers."""
+    if not isinstance(raw, list):
+        raise ConfigError(f"{src}: {key}: expected a list of [index, sub, value]")
+    out = []
+    for n, item in enumerate(raw):
+        if isinstance(item, dict):
+            extra = set(item) - {"index", "sub", "value"}
+            if extra or "index" not in item or "value" not in item:
+                raise ConfigError(f"{src}: {key}[{n}]: expected index, sub and value, got {sorted(item)}")
+            item = [item["index"], item.get("sub", 0), item["value"]]
+        if not (isinstance(item, list) and len(item) == 3 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                                  for v in item)):
+            raise ConfigError(f"{src}: {key}[{n}]: expected [index, sub, value] (integers), got {item!r}")
+        index, sub, value = item
+        if not 0x1000 <= index <= 0xFFFF or not 0 <= sub <= 0xFF:
+            raise ConfigError(f"{src}: {key}[{n}]: index 0x1000..0xFFFF and sub 0..255, got {index:#x}:{sub}")
+        out.append((index, sub, value))
+    return tuple(out)
 
 
 def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:

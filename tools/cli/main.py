@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     from drivectl.tools.cli.shell import add_shell_parser
 
     add_shell_parser(sub)
+    from drivectl.tools.cli.doctor import add_doctor_parser
+
+    add_doctor_parser(sub)
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -109,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: commands that talk to drives: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into
 #: the bus I/O (drivectl.controllers.runtime.interrupt); elsewhere (tune's search, explain, plot) they end at once
-TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate")
+TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate",
+                   "doctor")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -185,6 +189,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             return cmd_shell(args)
         if args.command == "summary":
             return cmd_summary(args)
+        if args.command == "doctor":
+            from drivectl.tools.cli.doctor import cmd_doctor
+
+            return cmd_doctor(args)
     except bad_input as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

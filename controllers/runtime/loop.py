@@ -10,14 +10,11 @@ being run; an axis with nothing to do holds its position under its controller.
 
 Two clocks, chosen when the loop is made:
 
-* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (paced as ``trace --paced``:
-  :class:`~drivectl.controllers.runtime.servo.Pacer`), so that nothing a user or a program does delays a
-  cycle. Missed deadlines and the worst lateness are counted all the time (``status()``). A cycle that
-  starts later than ``stall_s`` after the previous one is a stall: a fault (quick stop); a watchdog
-  thread sends the quick stop itself when the loop thread does not come back at all, and the drive's
-  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies. The
-  in-process emulated drives run on this loop's clock meanwhile (as across processes), so a loop later
-  than the RPDO deadline is caught by the drive as a real one would catch it.
+* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (pacing.Pacer). A late
+  wake-up is a missed cycle: the loop resynchronises to the next slot; only a gap past an enabled
+  axis's deadline is a fault (docs/timing.md); a watchdog thread quick-stops the axes when the loop
+  thread does not come back at all, and the drives' own watchdogs (0x1400:05, 0x1016) when the process
+  dies. In-process, the emulated drives run on this loop's clock (as across processes).
 * ``"lockstep"``: no thread; time is the cycle count and advances only when the caller runs cycles
   (:meth:`ServoLoop.step`, :meth:`ServoLoop.run_until`, a handle's ``wait``). Deterministic: the same
   commands give the same trace bit for bit (tests, CI on the emulated drives).

@@ -165,12 +165,13 @@ class AxisControl:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
 
     def _check_timing(self) -> None:
-        """The host's lateness so far (the wall-clock loop's own record) against this axis's deadline:
+        """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:
         a refusal past the margin, a warning near it (controllers/runtime/timing.py, docs/timing.md)."""
         loop = self._m.loop
-        if loop.clock != "wall" or loop.latency.n < MIN_TIMING_CYCLES:
+        recent = loop.recent.record()
+        if loop.clock != "wall" or recent.n < MIN_TIMING_CYCLES:
             return
-        verdict, why = judge(loop.deadlines[self.name], loop.dt, loop.latency.percentiles_ms())
+        verdict, why = judge(loop.deadlines[self.name], loop.dt, recent.percentiles_ms())
         if verdict == "refuse":
             raise AxisError(f"axis {self.name}: not enabled: the host is too late for its deadline ({why}); "
                             f"{WAYS_OUT}")
@@ -587,7 +588,7 @@ def connect(
 
     ``axes``: which (default all); ``clock``: "lockstep" or "wall" (default: lockstep on the virtual
     bus and with ``sim``, wall elsewhere); ``start``: emulated axes' positions at power-on, m;
-    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see README, Faults;
+    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see docs/faults.md;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
     fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop (None: each
     enabled axis's deadline, docs/timing.md); ``cpu``,

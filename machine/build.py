@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from drivectl.controllers.runtime.timing import Deadline, axis_deadline
-from drivectl.driver.axis import Axis
+from drivectl.driver.axis import Axis, AxisConfigError
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
 from drivectl.driver.network import (
@@ -231,7 +231,8 @@ def open_machine(
                 mine = [f for f in faults if (f.axis or names[0]) == name]
                 injector = machine.injectors[name] = FaultInjector(mine, bus=machine.master_bus)
             drive = EmulatedDrive(emu_net, ac.node_id, specs[name].build(dt), rated_effort=ac.rated_effort,
-                                  resolution=ac.encoder_m_per_count, force_noise=noise, seed=seed + i,
+                                  eds=readable_eds(name, ac.eds), resolution=ac.encoder_m_per_count,
+                                  force_noise=noise, seed=seed + i,
                                   initial_position=start.get(name, 0.0), faults=injector,
                                   io=ac.emulator)
             machine.drives[name] = drive
@@ -250,6 +251,19 @@ def _lockstep_end(lockstep: Lockstep, channel: str, paced: bool) -> Any:
     return open_bus("virtual", channel) if paced else lockstep.bus(channel)
 
 
+def readable_eds(name: str, eds: str) -> str:
+    """``eds`` when canopen reads it; else the one line the master would say, before any drive exists (the emulated
+    drive impersonates the axis's EDS)."""
+    import canopen
+
+    try:
+        canopen.import_od(str(eds), 1)
+    except Exception as exc:  # canopen raises many types for a bad file
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0].rstrip(":")
+        raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {reason}") from None
+    return eds
+
+
 def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
                      specs: dict[str, PlantSpec]) -> None:
     """One CanopenAxis per axis on ``net``, sharing one SYNC clock; each booted and configured."""
@@ -264,7 +278,9 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
                            max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=machine.deadlines[name].ms,
                            max_effort=ac.limits.max_effort, last_resort=ac.last_resort,
-                           mapping=resolve_mapping(cfg, len(names)))
+                           mapping=resolve_mapping(cfg, len(names)),
+                           rated_effort_source=ac.rated_effort_source,
+                           sdo_init=ac.sdo_init)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)
@@ -356,7 +372,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
         specs = plant_specs(cfg, list(cfg.axes), None, effects)
         for name, ac in cfg.axes.items():
             drive = EmulatedDrive(emu, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
-                                  resolution=ac.encoder_m_per_count)
+                                  eds=readable_eds(name, ac.eds), resolution=ac.encoder_m_per_count)
             session.drives[name] = drive
         for drive in session.drives.values():
             drive.boot()

@@ -57,6 +57,21 @@ def test_latency_record_percentiles_and_verdicts():
     assert judge(0.0, 1e-3, p)[0] == "ok"  # no deadline written: nothing to judge
 
 
+def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
+    from drivectl.controllers.runtime.timing import RecentLatency
+
+    r = RecentLatency(window=1000)
+    r.add(0.05)  # a 50 ms hiccup at the start
+    for _ in range(1500):
+        r.add(20e-6)
+    assert r.record().max == pytest.approx(0.05) and r.record().n == 1501
+    for _ in range(1000):
+        r.add(20e-6)
+    rec = r.record()
+    assert rec.max == pytest.approx(20e-6) and 1000 <= rec.n <= 2000  # forgotten after one to two windows
+    assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
+
+
 def _sim_loop(tmp_path, stall):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
     simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept)."""

@@ -65,7 +65,7 @@ from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
 from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
 from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
-from drivectl.controllers.runtime.timing import LatencyRecord
+from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 
@@ -137,15 +137,14 @@ class ServoLoop:
         self.dt = channels[0].axis.dt
         self.clock = clock
         #: each axis's deadline (s; controllers/runtime/timing.py): the longest its drive holds a setpoint
-        self.deadlines = {ch.axis.name: 2 * self.dt for ch in channels}
-        self.deadlines.update({k: v for k, v in (deadlines or {}).items() if k in self.deadlines})
+        self.deadlines = {ch.axis.name: (deadlines or {}).get(ch.axis.name, 2 * self.dt) for ch in channels}
         #: a gap between two cycles longer than this is a stall (a fault); None: each enabled axis's deadline
         self.stall_s = stall_s
-        watched = [d for d in self.deadlines.values() if d > 0]
-        self._first_bound = stall_s if stall_s is not None else min(watched) if watched else math.inf
+        self._first_bound = stall_s if stall_s is not None else min(self.bound_of(n) for n in self.deadlines)
         #: the watchdog thread's bound: a loop thread silent for twice this is quick-stopped from outside
         self._watch_s = max(self._first_bound if math.isfinite(self._first_bound) else 0.05, 0.05)
-        self.latency = LatencyRecord()  # every wall-clock cycle's lateness (status, enable's check)
+        self.latency = LatencyRecord()  # every wall-clock cycle's lateness since the start (status)
+        self.recent = RecentLatency()  # the last 30-60 s of it (enable's check)
         self.fault_dir = Path(fault_dir) if fault_dir is not None else None
         self.gc_control = gc_control
         #: shorten the interpreter's switch interval while the wall-clock loop runs (controllers/runtime/host.py)
@@ -543,9 +542,11 @@ class ServoLoop:
             pace_axes(self._channels, pacer.now)
             paced = True
             k = 0
-            latency = self.latency
+            latency, recent = self.latency, self.recent
             while not self._closing:
-                latency.add(pacer.wait(k))
+                late = pacer.wait(k)
+                latency.add(late)
+                recent.add(late)
                 t = now()
                 last = self._last_cycle_t
                 if last is not None and t - last > self._first_bound:
@@ -607,11 +608,11 @@ class ServoLoop:
         if took > self.gc_worst:
             self.gc_worst = took
 
-    def bound_of(self, rt: AxisRuntime) -> float:
-        """The longest gap between two cycles that ``rt`` rides out (s; inf: not watched)."""
+    def bound_of(self, rt: AxisRuntime | str) -> float:
+        """The longest gap between two cycles that an axis rides out (s; inf: not watched)."""
         if self.stall_s is not None:
             return self.stall_s
-        d = self.deadlines[rt.name]
+        d = self.deadlines[rt if isinstance(rt, str) else rt.name]
         return d if d > 0 else math.inf
 
     def _on_stall(self, gap: float) -> None:

@@ -399,8 +399,10 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     for ch in channels:
         ch.axis.enable()
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED):
-        late = [f"{ch.axis.name} ({ch.axis.power.value})" for ch in channels
-                if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
+        late = [f"{ch.axis.name} ({ch.axis.power.value}"
+                + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
+                for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {STATE_CHANGE_CYCLES} cycles")
 
 

@@ -118,11 +118,40 @@ class LatencyRecord:
                 "p99_9": self.percentile(99.9) * 1e3, "p99_99": self.percentile(99.99) * 1e3,
                 "max": self.max * 1e3}
 
+    def clear(self) -> None:
+        for i in range(len(self.counts)):
+            self.counts[i] = 0
+        self.n, self.max = 0, 0.0
+
     def merge(self, other: LatencyRecord) -> None:
         for i, c in enumerate(other.counts):
             self.counts[i] += c
         self.n += other.n
         self.max = max(self.max, other.max)
+
+
+class RecentLatency:
+    """The lateness of the last ``window`` to ``2 window`` cycles: what ``enable`` judges, so that one
+    hiccup long ago (a program's start-up) does not refuse for the rest of the session. Two records, the
+    older cleared and reused when the newer fills (nothing allocated in the cycle)."""
+
+    def __init__(self, window: int = 30_000):
+        self.window = window
+        self._cur, self._prev = LatencyRecord(), LatencyRecord()
+
+    def add(self, late: float) -> None:
+        cur = self._cur
+        cur.add(late)
+        if cur.n >= self.window:
+            self._prev.clear()
+            self._cur, self._prev = self._prev, cur
+
+    def record(self) -> LatencyRecord:
+        """The two windows as one record (a copy: read from any thread)."""
+        out = LatencyRecord()
+        out.merge(self._prev)
+        out.merge(self._cur)
+        return out
 
 
 def judge(deadline_s: float, dt: float, latency_ms: dict[str, float]) -> tuple[str, str]:

@@ -6,8 +6,8 @@ the configured bus (SYNC, TPDOs, RPDOs of every axis), no axis enabled. It repor
 percentiles of every cycle and what the OS granted, the kernel (PREEMPT_RT or not) and the bus load, and
 per axis the deadline it uses (controllers/runtime/timing.py, docs/timing.md) and whether the host meets it.
 
-The drives part (:func:`drive_sections`) says, per drive, what the master found and wrote; ``enable``
-refuses on the same verdict (session.py).
+The drives part says, per drive, the deadline written (:func:`drive_sections`) and what the master found
+and whether it enables (tools/cli/doctor_drive.py); ``enable`` refuses on the same verdict (session.py).
 """
 
 from __future__ import annotations
@@ -175,6 +175,11 @@ def cmd_doctor(args: argparse.Namespace) -> int:
         for item, text in res["drives"].get(n, {}).items():
             if item != "deadline":
                 print(f"          {item}: {text}")
+    from drivectl.tools.cli.doctor_drive import drive_section
+
+    for n in names:  # each drive as the master finds it, and whether it enables or why not (doctor_drive.py)
+        _, lines = drive_section(cfg, n)
+        print(f"axis {n:<4} " + "\n          ".join(lines))
     path = plot_histogram(res["latency"], deadlines, cfg.cycle_s, args.out)
     print(f"histogram {path}")
     print(f"verdict   {verdict}" + (f" ({WAYS_OUT})" if verdict != "ok" else ""))

@@ -79,6 +79,9 @@ def add_commission_parsers(sub: Any) -> None:
     ci = csub.add_parser("init", help="write a commented starter configuration")
     ci.add_argument("file", nargs="?", default="drivectl.toml")
     ci.add_argument("--force", action="store_true", help="overwrite an existing file")
+    ci.add_argument("--eds", metavar="FILE", help="a configuration whose axis is this drive (emulated by default: the "
+                    "emulated drive impersonates the EDS); every choice commented")
+    ci.add_argument("--axis", default="x", help="--eds: the axis's name (default x)")
 
     s = sub.add_parser("scan", help="list the CANopen nodes on the bus (identity, device name, NMT state)")
     s.add_argument("--json", action="store_true")
@@ -125,7 +128,18 @@ def cmd_config(args: argparse.Namespace) -> int:
         if path.exists() and not args.force:
             print(f"drivectl: {path}: exists (use --force to overwrite)", file=sys.stderr)
             return 2
-        atomic_write_text(path, DEFAULT_CONFIG_TOML)
+        text = DEFAULT_CONFIG_TOML
+        if args.eds is not None:
+            from drivectl.machine.eds_config import starter_config
+            from drivectl.tracefile.stream import safe_name
+
+            if not safe_name(args.axis):
+                print(f"drivectl: --axis {args.axis!r}: an axis name names its trace files: letters, digits, _ + - "
+                      "only", file=sys.stderr)
+                return 2
+
+            text = starter_config(args.eds, args.axis)  # a drive without an essential: one line, nothing written
+        atomic_write_text(path, text)
         print(f"wrote {path} (use it with: drivectl --config {path} ...)")
         return 0
     from drivectl.machine.config_io import show_text
@@ -288,8 +302,10 @@ def cmd_power(args: argparse.Namespace) -> int:
             ax.read()
             ax.write(0.0)
         if ax.power is not want:
+            why = f": {ax.enable_blocker()}" if want is PowerState.OPERATION_ENABLED and hasattr(ax, "enable_blocker") \
+                else ""
             print(f"drivectl: axis {args.axis}: still {ax.power.value} after {STATE_CHANGE_CYCLES} cycles "
-                  f"(wanted {want.value})", file=sys.stderr)
+                  f"(wanted {want.value}){why}", file=sys.stderr)
             return 1
         print(f"axis {args.axis}: {ax.power.value}")
     return 0

@@ -28,6 +28,7 @@ import math
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -47,6 +48,7 @@ from drivectl.controllers.runtime.loop import (
 )
 from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
+from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.profiles.base import Profile, profile_name
@@ -68,6 +70,14 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     return True
 
 
+
+class TimingWarning(UserWarning):
+    """``enable``: the host's lateness comes near the axis's deadline (docs/timing.md)."""
+
+
+#: wall-clock cycles the loop must have run before ``enable`` judges the host by its record (1 s at 1 kHz)
+MIN_TIMING_CYCLES = 1000
+
 class AxisControl:
     """One axis of a connected machine (``machine.axes["x"]``)."""
 
@@ -75,6 +85,7 @@ class AxisControl:
         self._m = machine
         self._rt = rt
         self.name = rt.name
+        self.timing_warning = ""  # what enable said of the host's timing (controllers/runtime/timing.py)
 
     # -- what it reports ---------------------------------------------------------------------------------
     @property
@@ -138,6 +149,8 @@ class AxisControl:
             raise AxisError(f"axis {self.name}: in Fault ({f'0x{err[0]:04X}: {err[1]}' if err else 'no code'}), "
                             "fault_reset first")
 
+        self._check_timing()
+
         def go() -> None:
             if rt.state is AxisState.ENABLING:
                 rt.ch.axis.enable()
@@ -151,6 +164,21 @@ class AxisControl:
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
+
+    def _check_timing(self) -> None:
+        """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:
+        a refusal past the margin, a warning near it (controllers/runtime/timing.py, docs/timing.md)."""
+        loop = self._m.loop
+        recent = loop.recent.record()
+        if loop.clock != "wall" or recent.n < MIN_TIMING_CYCLES:
+            return
+        verdict, why = judge(loop.deadlines[self.name], loop.dt, recent.percentiles_ms())
+        if verdict == "refuse":
+            raise AxisError(f"axis {self.name}: not enabled: the host is too late for its deadline ({why}); "
+                            f"{WAYS_OUT}")
+        if verdict == "warn":
+            self.timing_warning = f"axis {self.name}: the host comes near its deadline ({why})"
+            warnings.warn(self.timing_warning, TimingWarning, stacklevel=3)
 
     def disable(self, timeout: float = 1.0) -> None:
         """Torque off; returns once the drive reports a state without torque (AxisError if not)."""
@@ -573,7 +601,7 @@ def connect(
     start: dict[str, float] | None = None,
     faults: Sequence[str] | None = None,
     fault_dir: str | Path | None = "traces",
-    stall_s: float = 0.05,
+    stall_s: float | None = None,
     ring_s: float = 5.0,
     cpu: int | None = None,
     realtime: bool = True,
@@ -590,7 +618,8 @@ def connect(
     bus and with ``sim``, wall elsewhere); ``start``: emulated axes' positions at power-on, m;
     ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see docs/faults.md;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
-    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
+    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop (None: each
+    enabled axis's deadline, docs/timing.md); ``cpu``,
     ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see
     controllers/runtime/loop.py). ``effects`` (``[("stribeck", {"excess_force": 15.0, "velocity": 0.002})]``)
     and ``noise`` (std of a Gaussian force noise, effort unit; ``seed``) are what the emulated drives play
@@ -627,8 +656,8 @@ def connect(
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
-                         ring_s=ring_s, fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime,
-                         gil_switch=gil_switch)
+                         deadlines={n: d.seconds for n, d in hw.deadlines.items()}, ring_s=ring_s,
+                         fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
     except BaseException:

@@ -412,6 +412,16 @@ class Mbc(Controller):
         if self._started:
             self._s[:self._n:2] -= delta
 
+    def skipped(self, cycles: int) -> None:
+        """The estimate carried over ``cycles`` cycles without a sample, the last command held (as the drive
+        held it): the filter's open-loop prediction, so the next sample is not taken for a disturbance."""
+        if not self._started:
+            return
+        F, G, u = self.d.F, self.d.G, self._u_prev
+        s = self._s
+        for _ in range(cycles):
+            s[:] = F @ s + G * u
+
     def note_applied(self, effort: Any) -> None:
         """The effort actually sent (a learned feed-forward added to ours): the filter must know the
         command in flight, or it takes the addition for a disturbance and cancels it."""

@@ -171,7 +171,7 @@ CASES = [
      ("{path}", "axes.x.limits.max_speed_m_s", "-2.0")),
     ("config-max-lost-cycles-negative", "config", edit(CONFIG, "max_lost_cycles = 3 ", "max_lost_cycles = -1 "),
      BUS, ("{path}", "axes.x.max_lost_cycles", "-1")),
-    ("config-rpdo-timeout-string", "config", edit(CONFIG, "rpdo_timeout_ms = 2 ", 'rpdo_timeout_ms = "2" '), BUS,
+    ("config-rpdo-timeout-string", "config", edit(CONFIG, "# rpdo_timeout_ms = 6 ", 'rpdo_timeout_ms = "2" '), BUS,
      ("{path}", "axes.x.rpdo_timeout_ms", "'2'")),
     ("config-plant-file-missing", "config", edit(CONFIG, 'plant = "rigid-x"', 'plant = "no-such-plant.toml"'), SIM,
      ("{path}", "axes.x.plant", "no-such-plant.toml", "no such plant file")),

@@ -99,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     from drivectl.tools.ui.command import add_ui_parser
 
     add_ui_parser(sub)
+    from drivectl.tools.cli.doctor import add_doctor_parser
+
+    add_doctor_parser(sub)
     from drivectl.tools.cli.drive import add_drive_parser
 
     add_drive_parser(sub)
@@ -207,6 +210,10 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.cli.drive import cmd_drive
 
             return cmd_drive(args)
+        if args.command == "doctor":
+            from drivectl.tools.cli.doctor import cmd_doctor
+
+            return cmd_doctor(args)
     except bad_input as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -212,6 +212,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     names = [args.axis] if args.axis else list(cfg.axes)
     for n in names:
         cfg.axis(n)
+    from drivectl.machine.build import axis_deadlines, plant_specs
+
+    deadlines = axis_deadlines(cfg, names, plant_specs(cfg, names))
     out = {}
     with open_bus_session(cfg) as session:
         net = session.network
@@ -227,6 +230,8 @@ def cmd_status(args: argparse.Namespace) -> int:
                 code = node.sdo[cia402.ERROR_CODE].raw
                 counts = node.sdo[cia402.POSITION_ACTUAL].raw
                 max_torque = node.sdo[cia402.MAX_TORQUE].raw
+                # the RPDO deadline the drive holds now (0x1400:05, where it has one: docs/timing.md)
+                rpdo_deadline = node.sdo[cia402.RPDO_COMM][5].raw if 5 in node.sdo[cia402.RPDO_COMM] else None
             except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
                 print(f"drivectl: axis {name}: node {ac.node_id}: no answer to SDO ({exc})", file=sys.stderr)
                 return 1
@@ -251,6 +256,8 @@ def cmd_status(args: argparse.Namespace) -> int:
                 "max_effort": ac.limits.max_effort if math.isfinite(ac.limits.max_effort) else None,
                 "effort_unit": unit,
                 "last_emcy": emcy[-1].hex() if emcy else None,
+                "rpdo_deadline_ms": rpdo_deadline,
+                "deadline_ms": deadlines[name].ms,  # what connecting writes there
             }
     if args.json:
         print(json.dumps(out))
@@ -268,6 +275,9 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(f"  max torque   {s['max_torque']:g} {u} (0x6072 = {s['max_torque_permille']} per mille; "
               f"limits.max_effort {limit})")
         print(f"  last EMCY    {s['last_emcy'] or 'none'}")
+        d = deadlines[name]
+        now = "none" if s["rpdo_deadline_ms"] is None else f"{s['rpdo_deadline_ms']} ms"
+        print(f"  deadline     0x1400:05 = {now}; connecting writes {d.ms} ms ({d.source}: {d.formula})")
     return 0
 
 

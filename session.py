@@ -28,6 +28,7 @@ import math
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,7 @@ from drivectl.controllers.runtime.loop import (
     drive_error,
 )
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
+from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.profiles.base import Profile, profile_name
@@ -58,14 +60,22 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     """In the loop's cycle, before a new command takes the axis: False (the handle ended) when the axis
     is no longer servoing; else the command under way, if another, ends as replaced."""
     if rt.state is not AxisState.SERVO:
-        handle._end("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+        handle.finish("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
         return False
     if rt.handle is not None and rt.handle is not handle:
         old, rt.handle = rt.handle, None
-        old._end("stopped", rt, f"replaced by {kind}")
+        old.finish("stopped", rt, f"replaced by {kind}")
     rt.ch.controller.use_preview(None)  # a run's preview ends with the run (a run installs its own)
     return True
 
+
+
+class TimingWarning(UserWarning):
+    """``enable``: the host's lateness comes near the axis's deadline (docs/timing.md)."""
+
+
+#: wall-clock cycles the loop must have run before ``enable`` judges the host by its record (1 s at 1 kHz)
+MIN_TIMING_CYCLES = 1000
 
 class AxisControl:
     """One axis of a connected machine (``machine.axes["x"]``)."""
@@ -74,6 +84,7 @@ class AxisControl:
         self._m = machine
         self._rt = rt
         self.name = rt.name
+        self.timing_warning = ""  # what enable said of the host's timing (controllers/runtime/timing.py)
 
     # -- what it reports ---------------------------------------------------------------------------------
     @property
@@ -137,6 +148,8 @@ class AxisControl:
             raise AxisError(f"axis {self.name}: in Fault ({f'0x{err[0]:04X}: {err[1]}' if err else 'no code'}), "
                             "fault_reset first")
 
+        self._check_timing()
+
         def go() -> None:
             if rt.state is AxisState.ENABLING:
                 rt.ch.axis.enable()
@@ -145,16 +158,31 @@ class AxisControl:
         rt.state = AxisState.ENABLING  # before the loop takes it: waiting below must not end at once
         loop.submit(go)
         if not self._m.run_until(lambda: rt.state is not AxisState.ENABLING, timeout):
-            loop.submit(lambda: self._m.loop._disable(rt, "enable timed out"))
+            loop.submit(lambda: self._m.loop.disable_axis(rt, "enable timed out"))
             raise AxisError(f"axis {self.name}: not Operation Enabled within {timeout:g} s (drive reports "
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
 
+    def _check_timing(self) -> None:
+        """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:
+        a refusal past the margin, a warning near it (controllers/runtime/timing.py, docs/timing.md)."""
+        loop = self._m.loop
+        recent = loop.recent.record()
+        if loop.clock != "wall" or recent.n < MIN_TIMING_CYCLES:
+            return
+        verdict, why = judge(loop.deadlines[self.name], loop.dt, recent.percentiles_ms())
+        if verdict == "refuse":
+            raise AxisError(f"axis {self.name}: not enabled: the host is too late for its deadline ({why}); "
+                            f"{WAYS_OUT}")
+        if verdict == "warn":
+            self.timing_warning = f"axis {self.name}: the host comes near its deadline ({why})"
+            warnings.warn(self.timing_warning, TimingWarning, stacklevel=3)
+
     def disable(self, timeout: float = 1.0) -> None:
         """Torque off; returns once the drive reports a state without torque (AxisError if not)."""
         loop = self._m.loop
-        loop.submit(lambda: loop._disable(self._rt, "disabled"))
+        loop.submit(lambda: loop.disable_axis(self._rt, "disabled"))
         axis = self._rt.ch.axis
         if not self._m.run_until(lambda: axis.power not in (PowerState.OPERATION_ENABLED,
                                                          PowerState.QUICK_STOP_ACTIVE), timeout):
@@ -240,7 +268,7 @@ class AxisControl:
             toward = rt.traj.position + math.copysign(1e3, velocity)
         if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
             done = Move(self._m.loop, self.name, "jog", velocity)
-            done._end("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
+            done.finish("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
                       "window inside it); nothing moved")
             return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
@@ -270,11 +298,11 @@ class AxisControl:
 
         def go() -> None:
             if rt.state is not AxisState.SERVO:
-                handle._end("done", rt, "not enabled")
+                handle.finish("done", rt, "not enabled")
                 return
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
-                old._end("stopped", rt, why)
+                old.finish("stopped", rt, why)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration
@@ -520,7 +548,7 @@ class Machine:
         finally:
             self.hardware.close()
             for h in self._streamed:
-                h._close_record()  # a run cut short by the close: its record ends here, trailer and all
+                h.close_record()  # a run cut short by the close: its record ends here, trailer and all
         # what the drives said, never what was meant: an axis that did not confirm is named
         self.unconfirmed = [n for n, st in states.items() if st == PowerState.OPERATION_ENABLED.value]
         for n in self.unconfirmed:
@@ -548,7 +576,7 @@ def connect(
     start: dict[str, float] | None = None,
     faults: Sequence[str] | None = None,
     fault_dir: str | Path | None = "traces",
-    stall_s: float = 0.05,
+    stall_s: float | None = None,
     ring_s: float = 5.0,
     cpu: int | None = None,
     realtime: bool = True,
@@ -560,9 +588,10 @@ def connect(
 
     ``axes``: which (default all); ``clock``: "lockstep" or "wall" (default: lockstep on the virtual
     bus and with ``sim``, wall elsewhere); ``start``: emulated axes' positions at power-on, m;
-    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see README, Faults;
+    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see docs/faults.md;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
-    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
+    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop (None: each
+    enabled axis's deadline, docs/timing.md); ``cpu``,
     ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see
     controllers/runtime/loop.py).
     """
@@ -580,10 +609,10 @@ def connect(
                                       plant=specs[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs)
+    if clock is None:
+        clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall")
     try:
-        if clock is None:
-            clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
         channels = []
         motion = {}
         for n in names:
@@ -594,8 +623,8 @@ def connect(
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
-                         ring_s=ring_s, fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime,
-                         gil_switch=gil_switch)
+                         deadlines={n: d.seconds for n, d in hw.deadlines.items()}, ring_s=ring_s,
+                         fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
     except BaseException:

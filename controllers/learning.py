@@ -1,4 +1,4 @@
-"""A learned feedforward added to any controller's effort (iterative learning control, issue 16 point 5).
+"""A learned feedforward added to any controller's effort (iterative learning control).
 
 :class:`LearnedFeedforward` wraps a :class:`~drivectl.controllers.base.Controller` and adds, at cycle k
 of a run, the k-th sample of a correction sequence (effort unit) to the inner controller's effort. The
@@ -48,6 +48,9 @@ class LearnedFeedforward(Controller):
 
     def use_preview(self, preview: Any) -> None:
         self.inner.use_preview(preview)
+
+    def skipped(self, cycles: int) -> None:
+        self.inner.skipped(cycles)
 
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k

@@ -14,7 +14,7 @@ two bandwidths with physical meaning, and computes every gain (``scipy.linalg.so
   is exact except within two cycles of a jerk switch. On a two-mass model the snap impulse of the exact
   inverse at each jerk switch is spread over a short centred window computed from the model
   (``snap = "spread"``, :meth:`LinearModel.snap_spread`: 3.2 ms on two-mass): it cut the effort's
-  roughness by a third (bench/precision.py, README).
+  roughness by a third (bench/precision.py, docs/precision.md).
 * **Kalman filter** on the model discretised exactly for the cycle, with the command in flight (the one
   sent last cycle, acting now) and two disturbance states: an effort-equivalent disturbance d and its
   rate. Where the model names a disturbance frequency (paper 000's d = 0.1 sin(pi t)) d is an oscillator at
@@ -361,6 +361,16 @@ class Mbc(Controller):
         self._fk = fk
         self._k += 1
         return u_net + fk
+
+    def skipped(self, cycles: int) -> None:
+        """The estimate carried over ``cycles`` cycles without a sample, the last command held (as the drive
+        held it): the filter's open-loop prediction, so the next sample is not taken for a disturbance."""
+        if not self._started:
+            return
+        F, G, u = self.d.F, self.d.G, self._u_prev
+        s = self._s
+        for _ in range(cycles):
+            s[:] = F @ s + G * u
 
     def note_applied(self, effort: Any) -> None:
         """The effort actually sent (a learned feed-forward added to ours): the filter must know the

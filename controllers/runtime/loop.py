@@ -10,20 +10,17 @@ being run; an axis with nothing to do holds its position under its controller.
 
 Two clocks, chosen when the loop is made:
 
-* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (paced as ``trace --paced``:
-  :class:`~drivectl.controllers.runtime.servo.Pacer`), so that nothing a user or a program does delays a
-  cycle. Missed deadlines and the worst lateness are counted all the time (``status()``). A cycle that
-  starts later than ``stall_s`` after the previous one is a stall: a fault (quick stop); a watchdog
-  thread sends the quick stop itself when the loop thread does not come back at all, and the drive's
-  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies. The
-  in-process emulated drives run on this loop's clock meanwhile (as across processes), so a loop later
-  than the RPDO deadline is caught by the drive as a real one would catch it.
+* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (pacing.Pacer). A late
+  wake-up is a missed cycle: the loop resynchronises to the next slot; only a gap past an enabled
+  axis's deadline is a fault (docs/timing.md); a watchdog thread quick-stops the axes when the loop
+  thread does not come back at all, and the drives' own watchdogs (0x1400:05, 0x1016) when the process
+  dies. In-process, the emulated drives run on this loop's clock (as across processes).
 * ``"lockstep"``: no thread; time is the cycle count and advances only when the caller runs cycles
   (:meth:`ServoLoop.step`, :meth:`ServoLoop.run_until`, a handle's ``wait``). Deterministic: the same
   commands give the same trace bit for bit (tests, CI on the emulated drives).
 
 A fault on any axis (a drive fault, lost TPDOs, a limit, a stall) quick-stops every axis of the loop
-(``_safe_stop``: verified from the drives' reports), fails the handles of the moves under way with
+(``stop_channels``: verified from the drives' reports), fails the handles of the moves under way with
 that fault, and completes every capture armed on the fault trigger (the ring's last samples, written
 to ``fault_dir`` as a trace v1: the last seconds before any fault are on disk).
 
@@ -44,35 +41,33 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, Ring, Trigger
-from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
-from drivectl.controllers.runtime.servo import (
+from drivectl.controllers.runtime.cycle import (
     SAFE_STATES,
-    STATE_CHANGE_CYCLES,
     Channel,
     CycleFault,
     Fault,
     Limits,
-    Pacer,
     StopReason,
-    _pace_axes,
-    _safe_stop,
     check_and_write,
     control,
     sample_axis,
 )
+from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
+from drivectl.controllers.runtime.host import release_gc, release_switch, take_gc, take_switch
+from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
+from drivectl.controllers.runtime.pacing import Pacer, pace_axes
+from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
+from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
+from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
-from drivectl.profiles.base import Reference
 
 CLOCKS = ("lockstep", "wall")
 
@@ -82,122 +77,6 @@ class AxisState(Enum):
     ENABLING = "enabling"  # asked to enable; servoing from the cycle the drive reports Operation Enabled
     SERVO = "servo"  # enabled, its loop closed every cycle
 
-
-class MotionFault(RuntimeError):
-    """A move ended in a fault; ``fault`` says which (kind, axis, cycle, statusword, 0x603F, safe state)."""
-
-    def __init__(self, message: str, fault: Fault | None):
-        super().__init__(message)
-        self.fault = fault
-
-
-class Move:
-    """A handle on a command given to the loop (move, jog, stop, home, run): ``wait()`` for its end.
-
-    ``status``: pending (not yet taken by the loop), moving, settling (the reference arrived, the axis
-    is getting into position), done, stopped (replaced by another command, stopped, or the axis
-    disabled), fault. After the end: ``position`` and ``following_error`` (m) at the end, ``settled``
-    (in position within the window), ``cycles`` it took, ``trace`` (a run's record)."""
-
-    def __init__(self, loop: ServoLoop, axis: str, kind: str, target: float | None = None):
-        self.loop = loop
-        self.axis = axis
-        self.kind = kind
-        self.target = target
-        self.status = "pending"
-        self.detail = ""
-        self.fault: Fault | None = None
-        self.position: float | None = None
-        self.following_error: float | None = None
-        self.settled = False
-        self.cycles = 0
-        self._run: ProfileRun | None = None  # a run's record, once it ended
-        self._trace_fn: Callable[[Move], Any] | None = None
-        self._trace: Any = None
-        self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
-        self.path: Path | None = None  # where a streamed run's trace was written
-        self.record_error = ""
-        #: what the loop starts when this ends done (a run after its approach move)
-        self._then: Callable[[], None] | None = None
-        self._done = threading.Event()
-        self._in_position = 0
-        self._settle_cycles = 0
-
-    @property
-    def done(self) -> bool:
-        return self._done.is_set()
-
-    def _end(self, status: str, rt: AxisRuntime | None = None, detail: str = "", fault: Fault | None = None) -> None:
-        if self._done.is_set():
-            return
-        self.status, self.detail, self.fault = status, detail, fault
-        if rt is not None:
-            self.position = rt.position
-            self.following_error = rt.following_error
-        self._done.set()
-
-    @property
-    def trace(self) -> Any:
-        """A run's record (trace v1), once it ended; None for other commands."""
-        if self._trace is None and self._run is not None and self._trace_fn is not None:
-            self._trace = self._trace_fn(self)
-        return self._trace
-
-    def wait(self, timeout: float | None = None) -> Move:
-        """Block until the command ended (lockstep: run the cycles, ``timeout`` in simulated s; wall:
-        ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
-        TimeoutError when it has not ended within ``timeout``."""
-        if not self.loop.wait_until(self._done.is_set, timeout):
-            if self.loop.error is not None:
-                raise AxisError(f"axis {self.axis}: {self.kind}: the servo loop ended ({self.loop.error!r}); the "
-                                "drives' own watchdogs stop the axes")
-            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
-            raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
-        self._close_record()
-        if self.status == "fault":
-            raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
-        return self
-
-    def _close_record(self) -> None:
-        """A streamed run's file: closed (trailer, rename) on the waiting side, never in the cycle."""
-        writer, self._writer = self._writer, None
-        if writer is None:
-            return
-        trailer = {"stop": self.status, "cycles": str(self._run.k if self._run else 0)}
-        if self.detail:
-            trailer["stop_detail"] = self.detail
-        if self.fault is not None:
-            trailer.update(self.fault.meta())
-        try:
-            self.path = writer.close(trailer)
-        except Exception as exc:  # noqa: BLE001 - the run's end is reported all the same
-            self.record_error = str(exc)
-
-    def __repr__(self) -> str:
-        where = f" at {self.position * 1e3:.6f} mm" if self.position is not None else ""
-        return f"<Move {self.kind} axis {self.axis}: {self.status}{where}>"
-
-
-@dataclass
-class ProfileRun:
-    """A profile being run on one axis: its samples, indexed per cycle; recorded into ``rec``."""
-
-    refs: list[list[float]]  # r, r', r'', r''' per cycle (offset applied)
-    n: int
-    k: int = 0
-    rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
-    #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
-    append: Callable[..., None] | None = None
-
-    def __post_init__(self) -> None:
-        self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
-
-    def next(self) -> Reference:
-        k = self.k if self.k < self.n else self.n - 1
-        pr, vr, ar, jr = self.refs
-        if self.k >= self.n:
-            return Reference(pr[k])
-        return Reference(pr[k], vr[k], ar[k], jr[k])
 
 
 class AxisRuntime:
@@ -236,7 +115,8 @@ class ServoLoop:
         motion: dict[str, MotionLimits] | None = None,
         *,
         clock: str = "lockstep",
-        stall_s: float = 0.05,
+        stall_s: float | None = 0.05,
+        deadlines: Mapping[str, float] | None = None,
         ring_s: float = 5.0,
         fault_dir: str | Path | None = None,
         gc_control: bool = True,
@@ -245,20 +125,29 @@ class ServoLoop:
         realtime: bool = False,
         io_lock: threading.RLock | None = None,
         now: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] | None = None,
         meta: dict[str, dict[str, str]] | None = None,
     ):
         if clock not in CLOCKS:
             raise ValueError(f"loop: clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
         if not channels:
             raise ValueError("loop: no axes")
-        if not (math.isfinite(stall_s) and stall_s > 0):
+        if stall_s is not None and not (math.isfinite(stall_s) and stall_s > 0):
             raise ValueError(f"loop: stall_s: must be > 0, got {stall_s!r}")
         self.dt = channels[0].axis.dt
         self.clock = clock
+        #: each axis's deadline (s; controllers/runtime/timing.py): the longest its drive holds a setpoint
+        self.deadlines = {ch.axis.name: (deadlines or {}).get(ch.axis.name, 2 * self.dt) for ch in channels}
+        #: a gap between two cycles longer than this is a stall (a fault); None: each enabled axis's deadline
         self.stall_s = stall_s
+        self._first_bound = stall_s if stall_s is not None else min(self.bound_of(n) for n in self.deadlines)
+        #: the watchdog thread's bound: a loop thread silent for twice this is quick-stopped from outside
+        self._watch_s = max(self._first_bound if math.isfinite(self._first_bound) else 0.05, 0.05)
+        self.latency = LatencyRecord()  # every wall-clock cycle's lateness since the start (status)
+        self.recent = RecentLatency()  # the last 30-60 s of it (enable's check)
         self.fault_dir = Path(fault_dir) if fault_dir is not None else None
         self.gc_control = gc_control
-        #: shorten the interpreter's switch interval while the wall-clock loop runs (see _take_switch)
+        #: shorten the interpreter's switch interval while the wall-clock loop runs (controllers/runtime/host.py)
         self.gil_switch = gil_switch
         self._switch_taken = False
         self.cpu = cpu
@@ -274,6 +163,8 @@ class ServoLoop:
         self.io_lock = io_lock or threading.RLock()
         self._inbox: collections.deque[Callable[[], None]] = collections.deque()
         self._now = now
+        self._elapsed = 1  # cycles since the previous cycle (more after a late wake-up)
+        self._sleep = sleep  # the pacer's (tests inject a clock whose sleeps pass simulated time)
         self.cycle = 0  # loop cycles run
         self.missed = 0
         self.worst_late = 0.0
@@ -323,7 +214,7 @@ class ServoLoop:
         try:
             if self._thread is None or self.running:
                 for rt in self._rts:
-                    self.submit(lambda rt=rt: self._disable(rt, "the machine closed"))
+                    self.submit(lambda rt=rt: self.disable_axis(rt, "the machine closed"))
                 self.run_until(lambda: all(rt.ch.axis.power not in _ENABLED for rt in self._rts),
                                timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
         finally:
@@ -339,17 +230,17 @@ class ServoLoop:
                 rt.captures.clear()
             self.flush()
             if self._gc_taken:
-                _release_gc()
+                release_gc()
                 self._gc_taken = False
             if self._switch_taken:
-                _release_switch()
+                release_switch()
                 self._switch_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
             axis = rt.ch.axis
             if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
-                _quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
             states[rt.name] = axis.power.value
         return states
 
@@ -419,7 +310,7 @@ class ServoLoop:
             except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
                 self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
                                   f"{exc}"), StopReason.FAULT)
-            self.cycle = k + 1
+            self.cycle += 1  # (a stop's own cycles were counted as they ran)
 
     def _axis_named(self, exc: Exception) -> str:
         text = str(exc)
@@ -430,6 +321,9 @@ class ServoLoop:
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
+        if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
+            ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
+            ch.controller.skipped(self._elapsed - 1)
         if rt.offset:
             fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
         if rt.jog_until and k >= rt.jog_until:
@@ -523,7 +417,7 @@ class ServoLoop:
         if h.kind == "jog":
             if rt.traj.arrived:  # stopped by the dead man or stop()
                 rt.handle = None
-                h._end("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
+                h.finish("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
             return
         if not rt.traj.arrived:
             return
@@ -540,7 +434,7 @@ class ServoLoop:
             return
         rt.handle = None
         then, h._then = h._then, None
-        h._end("done", rt, "" if h.settled else
+        h.finish("done", rt, "" if h.settled else
                f"not within {m.in_position * 1e6:g} um of the target {m.settle_timeout:g} s after the reference "
                f"arrived (error {(rt.traj.target - rt.position) * 1e6:+.2f} um)")
         if then is not None:
@@ -551,6 +445,8 @@ class ServoLoop:
         done = [cap for cap in rt.captures if cap.on_cycle(rt.ring, k, started)]
         for cap in done:
             rt.captures.remove(cap)
+            if cap.trigger.kind == "fault":
+                self._queue_fault_capture(cap)
 
     # -- faults and stops -----------------------------------------------------------------------------------
     def _fault(self, fault: Fault, stop: StopReason) -> None:
@@ -567,11 +463,14 @@ class ServoLoop:
                                  self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
                 rt.captures.extend(armed)
             for cap in armed:
+                if cap.post:  # the stop and what follows it come as the post-trigger samples
+                    cap.fire(last, why)
+                    continue
                 cap.complete(rt.ring, last, why)
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:
-            _safe_stop(self._channels, fault)
+            stop_channels(self._channels, fault, on_cycle=self._stop_cycle)
         except Exception as exc:  # noqa: BLE001 - the stop must not kill the loop; say so in the fault
             fault.detail += f"; the stop itself failed: {exc}"
         self.faults.append(fault)
@@ -584,7 +483,23 @@ class ServoLoop:
                 rt.fault = fault
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h._end("fault", rt, fault.detail, fault)
+                h.finish("fault", rt, fault.detail, fault)
+
+    def _stop_cycle(self, samples: Mapping[str, Feedback | None]) -> None:
+        """One cycle of a stop (controllers/runtime/safe_stop.py): every axis's sample into its ring, so a
+        fault capture's post-trigger samples show the stop itself."""
+        self.cycle += 1
+        k = self.cycle
+        for rt in self._rts:
+            fb = samples.get(rt.name)
+            if fb is None:
+                continue
+            ax = rt.ch.axis
+            pos = fb.position - rt.offset
+            rt.ring.push(k, rt.reference, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
+                         getattr(ax, "statusword", 0))
+            if rt.captures:
+                self._captures(rt, k)
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
@@ -605,7 +520,7 @@ class ServoLoop:
             except OSError as exc:
                 cap.detail += f"; not written: {exc}"
 
-    def _disable(self, rt: AxisRuntime, why: str) -> None:
+    def disable_axis(self, rt: AxisRuntime, why: str) -> None:
         """Torque off (the drive ramps per its options); a move under way ends as stopped."""
         rt.ch.axis.disable()
         rt.state = AxisState.OFF
@@ -613,7 +528,7 @@ class ServoLoop:
         rt.jog_until = 0
         if rt.handle is not None:
             h, rt.handle = rt.handle, None
-            h._end("stopped", rt, why)
+            h.finish("stopped", rt, why)
 
     # -- wall clock -------------------------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -621,23 +536,27 @@ class ServoLoop:
         try:
             self._setup_thread()
             now = self._now
-            pacer = Pacer(self.dt, now=now)
+            pacer = Pacer(self.dt, now=now, sleep=self._sleep)
             # in-process, the emulated drives run on this clock too, as across processes: a loop later than
-            # the drive's RPDO deadline is caught by the drive (controllers/servo._pace_axes)
-            _pace_axes(self._channels, pacer.now)
+            # the drive's RPDO deadline is caught by the drive (controllers/runtime/pacing.pace_axes)
+            pace_axes(self._channels, pacer.now)
             paced = True
             k = 0
+            latency, recent = self.latency, self.recent
             while not self._closing:
-                pacer.wait(k)
+                late = pacer.wait(k)
+                latency.add(late)
+                recent.add(late)
                 t = now()
                 last = self._last_cycle_t
-                if last is not None and t - last > self.stall_s:
+                if last is not None and t - last > self._first_bound:
                     self._on_stall(t - last)
                 behind = int((t - pacer.t0) / self.dt) - k
-                if behind > 1:  # far behind: skip the lost slots instead of bursting cycles to catch up
+                if behind > 0:  # a slot or more lost: resynchronise to the next one, no burst of stale cycles
                     pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
                     self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
+                self._elapsed = behind + 1
                 self._cycle_all()
                 self._last_cycle_t = now()
                 k += 1
@@ -650,16 +569,16 @@ class ServoLoop:
             raise
         finally:
             if paced:
-                _pace_axes(self._channels, None)
+                pace_axes(self._channels, None)
 
     def _setup_thread(self) -> None:
         if self.gil_switch:
-            was = _take_switch(self.dt / 10)
+            was = take_switch(self.dt / 10)
             self._switch_taken = True
             self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
                                    "a thread beside the loop gives up the GIL within a tenth of a cycle")
         if self.gc_control:
-            _take_gc()
+            take_gc()
             self._gc_taken = True
             self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
@@ -689,31 +608,41 @@ class ServoLoop:
         if took > self.gc_worst:
             self.gc_worst = took
 
+    def bound_of(self, rt: AxisRuntime | str) -> float:
+        """The longest gap between two cycles that an axis rides out (s; inf: not watched)."""
+        if self.stall_s is not None:
+            return self.stall_s
+        d = self.deadlines[rt if isinstance(rt, str) else rt.name]
+        return d if d > 0 else math.inf
+
     def _on_stall(self, gap: float) -> None:
-        self.stalls += 1
+        """A gap past an enabled axis's deadline is a fault (drivectl's own clock; the drive's catches the
+        same from its side); a shorter one is a missed cycle, counted, not a fault."""
         self._stalled = False
-        servo = next((rt for rt in self._rts if rt.state is AxisState.SERVO), None)
-        if servo is None:
+        over = [rt for rt in self._rts if rt.state is AxisState.SERVO and gap > self.bound_of(rt)]
+        if not over:
             return
+        self.stalls += 1
+        servo = min(over, key=self.bound_of)
         fault = Fault(FaultKind.LOOP_STALLED.value, servo.name, servo.servo_k,
                       f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
-                      f"(bound {self.stall_s * 1e3:g} ms)")
+                      f"(bound {self.bound_of(servo) * 1e3:g} ms)")
         with self.io_lock:
             self._fault(fault, StopReason.FAULT)
 
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
-        while not self._closed.wait(self.stall_s / 2):
+        while not self._closed.wait(self._watch_s / 2):
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue
-            if self._now() - last > 2 * self.stall_s:
+            if self._now() - last > 2 * self._watch_s:
                 self._stalled = True
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
-                        _quietly(rt.ch.axis.quick_stop)
-                        _quietly(rt.ch.axis.write, 0.0)
+                        quietly(rt.ch.axis.quick_stop)
+                        quietly(rt.ch.axis.write, 0.0)
 
     # -- what the user's side reads ----------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -727,7 +656,9 @@ class ServoLoop:
             "skipped_cycles": self.skipped,
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
-            "stall_bound_ms": self.stall_s * 1e3,
+            "stall_bound_ms": self._first_bound * 1e3,
+            "latency_ms": self.latency.percentiles_ms(),  # the wall clock's lateness of every cycle
+            "deadline_ms": {name: d * 1e3 for name, d in self.deadlines.items()},
             "gc_collections": self.gc_runs,
             "gc_worst_ms": self.gc_worst * 1e3,
             "granted": dict(self.granted),
@@ -751,71 +682,12 @@ class ServoLoop:
 
 _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
 
-# the collector is the process's: the first wall-clock loop takes it, the last one gives it back
-_gc_lock = threading.Lock()
-_gc_holders = 0
-_gc_was_enabled = True
-
-
-def _take_gc() -> None:
-    global _gc_holders, _gc_was_enabled
-    with _gc_lock:
-        if _gc_holders == 0:
-            _gc_was_enabled = gc.isenabled()
-            gc.collect()
-            gc.freeze()  # what exists now is never scanned again: young collections stay short
-            gc.disable()
-        _gc_holders += 1
-
-
-def _release_gc() -> None:
-    global _gc_holders
-    with _gc_lock:
-        _gc_holders -= 1
-        if _gc_holders == 0:
-            gc.unfreeze()  # back to normal collection: what was frozen may be collected again
-            if _gc_was_enabled:
-                gc.enable()
-
-
-# the interpreter's switch interval is the process's too. Python hands the GIL to a waiting thread only
-# after the holder has run for this long (5 ms by default): a program plotting beside the loop would
-# hold the loop's thread off for up to five cycles. The first wall-clock loop shortens it, the last
-# one restores it.
-_switch_holders = 0
-_switch_was = 0.005
-
-
-def _take_switch(interval: float) -> float:
-    global _switch_holders, _switch_was
-    with _gc_lock:
-        if _switch_holders == 0:
-            _switch_was = sys.getswitchinterval()
-            sys.setswitchinterval(min(_switch_was, interval))
-        _switch_holders += 1
-        return _switch_was
-
-
-def _release_switch() -> None:
-    global _switch_holders
-    with _gc_lock:
-        _switch_holders -= 1
-        if _switch_holders == 0:
-            sys.setswitchinterval(_switch_was)
-
-
-def _quietly(fn: Callable[..., object], *args: object) -> object:
-    try:
-        return fn(*args)
-    except Exception:  # noqa: BLE001 - a stop from the watchdog goes on whatever one call raises
-        return None
-
 
 def drive_error(axis: Axis) -> tuple[int, str] | None:
     """The drive's 0x603F (code, text), read by SDO where the axis can, else its last EMCY."""
     code = None
     if hasattr(axis, "read_error_code"):
-        code = _quietly(axis.read_error_code)
+        code = quietly(axis.read_error_code)
     if code is None and getattr(axis, "last_emcy", None):
         code = axis.last_emcy[0]
     if code is None:

@@ -26,9 +26,9 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from drivectl.controllers.runtime.servo import SAFE_STATES
-from drivectl.driver.axis import Axis, AxisError, FaultKind
-from drivectl.driver.cia402 import PowerState
+from drivectl.controllers.runtime.cycle import SAFE_STATES, Channel, Fault
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
+from drivectl.driver.cia402 import PowerState, error_text
 
 #: cycles a drive has to report a safe state after each step before the next one (a CiA 402 drive in
 #: cyclic synchronous torque takes a quick stop at the next SYNC)
@@ -67,14 +67,15 @@ def confirmed(axis: Axis) -> bool:
     return axis.power in SAFE_STATES and getattr(axis, "state_fresh", True)
 
 
-def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
-              fault_axis: str | None = None) -> dict[str, AxisStop]:
+def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: str | None = None,
+              on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> dict[str, AxisStop]:
     """Quick stop every axis now and verify; escalate per axis until each confirms or nothing is left.
-    Then disable the confirmed ones (a drive in Fault stays there: its reset is the operator's)."""
+    Then disable the confirmed ones (a drive in Fault stays there: its reset is the operator's).
+    ``on_cycle``: given every axis's sample (None: none came) after each of the stop's cycles."""
     stops = {ax.name: AxisStop(ax.name) for ax in axes}
     for ax in axes:
         _attempt(stops[ax.name], "quick stop by RPDO", ax.quick_stop)
-        _quietly(ax.write, 0.0)
+        quietly(ax.write, 0.0)
     cycle = 0
 
     def done(ax: Axis) -> bool:
@@ -105,7 +106,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
             if all(done(ax) for ax in axes):
                 break
             cycle += 1
-            if not _stop_cycle(axes):
+            if not _stop_cycle(axes, on_cycle):
                 break  # nothing answers at all: the next step may still get through (or fail and say so)
             mark(cycle)
         pending = [ax for ax in axes if not done(ax)]
@@ -117,11 +118,11 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
         mark(cycle)
     for ax in axes:
         if done(ax) and ax.power is not PowerState.FAULT:
-            _quietly(ax.disable)
+            quietly(ax.disable)
     for _ in range(SETTLE_CYCLES):
         if all(ax.power not in _STILL_CHANGING for ax in axes if done(ax)):
             break
-        if not _stop_cycle(axes):
+        if not _stop_cycle(axes, on_cycle):
             break
     return stops
 
@@ -134,13 +135,13 @@ def _sdo_quick_stop(st: AxisStop, ax: Axis) -> None:
 def _nmt_stop(st: AxisStop, ax: Axis, always: bool = False) -> None:
     if not hasattr(ax, "nmt_stop") or any(t.startswith("NMT Stop") for t in st.tried):
         return
-    option = ax.abort_connection_option() if not always else _quietly(ax.abort_connection_option)
+    option = ax.abort_connection_option() if not always else quietly(ax.abort_connection_option)
     if not always and option not in (1, 2, 3, None):
         st.tried.append(f"no NMT Stop (0x6007 = {option}: the drive would not stop on it)")
         return
     what = "NMT Stop" + (f" (0x6007 = {option})" if option is not None else " (0x6007 unreadable)")
     if _attempt(st, what, ax.nmt_stop):
-        _quietly(ax.refresh_state_outside_operational)
+        quietly(ax.refresh_state_outside_operational)
 
 
 def _last_resort(st: AxisStop, ax: Axis) -> None:
@@ -164,30 +165,58 @@ def _attempt(st: AxisStop, what: str, fn: Callable[[], object]) -> bool:
     return True
 
 
-def _stop_cycle(axes: Sequence[Axis]) -> bool:
+def _stop_cycle(axes: Sequence[Axis], on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> bool:
     """One zero-effort cycle of every axis during a stop, the statusword asked by SDO where no TPDO
     brought it; False when no axis could be cycled or asked."""
     alive = False
+    samples: dict[str, Feedback | None] = {}
     for axis in axes:
+        samples[axis.name] = None
         try:
-            axis.read()
+            samples[axis.name] = axis.read()
             alive = True
         except AxisError:
             pass  # no sample (TPDOs gone): asked by SDO below
         except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
             pass
         if not getattr(axis, "state_fresh", True) and hasattr(axis, "refresh_state"):
-            if _quietly(axis.refresh_state) is not None:
+            if quietly(axis.refresh_state) is not None:
                 alive = True
-        _quietly(axis.write, 0.0)
+        quietly(axis.write, 0.0)
+    if on_cycle is not None:
+        quietly(on_cycle, samples)
     return alive
 
 
-def _quietly(fn: Callable[..., object], *args: object) -> object:
+def quietly(fn: Callable[..., object], *args: object) -> object:
+    """``fn(*args)``, or None where it raised: a stop goes on whatever one call raises."""
     try:
         return fn(*args)
     except Exception:  # noqa: BLE001 - stopping goes on whatever one call raises
         return None
+
+
+def stop_channels(channels: Sequence[Channel], fault: Fault | None = None,
+                  on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> None:
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (:func:`stop_axes`); the cycles to a confirmed safe
+    state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None, on_cycle)
+    if fault is not None:
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
+        if faulted is not None:
+            fault.statusword = getattr(faulted, "statusword", None)
+            code = quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None
+            if code is None and getattr(faulted, "last_emcy", None):
+                code = faulted.last_emcy[0]
+            fault.error_code = code
+            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+                fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 
 def end_state_line(safe_state: dict[str, str], safe_after: dict[str, int | None]) -> str:

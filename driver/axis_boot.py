@@ -1,0 +1,265 @@
+"""The CiA 402 master's boot and configuration of one drive, before the cycle runs (a mixin of
+canopen_axis.CanopenAxis): NMT reset and boot-up, identity 0x1018, mode and PDO mapping by SDO, NMT start."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+
+import can
+import canopen
+from canopen import objectdictionary as odt
+
+from drivectl.driver import cia402
+from drivectl.driver.axis import AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.capabilities import MODE_NAMES, choose_mode, refuse_mode
+from drivectl.driver.cia301 import (
+    HEARTBEAT_BASE,
+    MASTER_NODE_ID,
+    NMT_COB_ID,
+    NmtCommand,
+    NmtState,
+)
+from drivectl.driver.pdo_plan import entry_bits
+
+
+@dataclass(frozen=True)
+class Identity:
+    """What 0x1018 must say (None: not checked)."""
+
+    vendor_id: int | None = None
+    product_code: int | None = None
+
+
+class AxisBoot:
+    # -- boot and configuration (before the cycle runs) ------------------------------------------
+    def connect(self) -> None:
+        """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
+        self._boot()
+        # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
+        # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
+        # retries of canopen's client (0.3 s each) for this one exchange
+        sdo = self.node.sdo
+        retries = sdo.MAX_RETRIES
+        sdo.MAX_RETRIES = max(retries, 3)
+        try:
+            self._check_identity()
+        finally:
+            sdo.MAX_RETRIES = retries
+        self._configure()
+        for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
+            self.network.subscribe(cob, handler)
+        # heartbeat consumer on the master's side: the drive's heartbeat counts in bus cycles
+        self._last_heartbeat = self.clock.cycle
+        self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
+        # frames only the master sends: seen from someone else they are a fault of their own
+        for cob in self._watched_cobs:
+            self.network.subscribe(cob, self._on_foreign)
+        # in lockstep the START below is taken at once; across processes a heartbeat already under way may
+        # still say Pre-operational, so a change counts only after the drive has said Operational
+        self._foreign, self._foreign_seen, self._nmt_own = None, False, False
+        self._seen_operational = self.lockstep
+        # the state before the first SYNC, so that the first cycle already sends the right command
+        self.statusword = self._sdo(cia402.STATUSWORD)
+        self.power = cia402.decode_statusword(self.statusword)
+        self.state_fresh, self.state_source = True, "SDO"
+        self._controlword = self.master.controlword(self.power)
+        counts = self._sdo(cia402.POSITION_ACTUAL)
+        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
+        if self._at_vel is None:
+            self._prev_counts = (counts, self.clock.cycle)
+        self._cw_sent = None  # the drive's 0x6040 after a (re)boot is not what we last sent
+        self.lost_cycles = 0
+        self._rebooted = False
+        self._consumed = self.clock.cycle
+        self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
+        self._connected = True
+
+    def _wait(self, event: threading.Event, what: str) -> None:
+        # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
+        # comes some tens of ms after the reset); otherwise wait for the notifier
+        if self.lockstep:
+            for _ in range(round(self.timeout / self.dt)):
+                if event.is_set():
+                    break
+                self.network.lockstep.advance(self.dt)
+        if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
+            raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
+
+    def _boot(self) -> None:
+        self._booted.clear()
+
+        def on_heartbeat(can_id: int, data: bytes, timestamp: float) -> None:
+            if data[:1] == b"\x00":
+                self._booted.set()
+
+        cob = HEARTBEAT_BASE + self.node_id
+        self.network.subscribe(cob, on_heartbeat)
+        try:
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, self.node_id]))
+            self._wait(self._booted, "boot-up message after NMT reset (is the drive powered, the node id right?)")
+        finally:
+            self.network.unsubscribe(cob, on_heartbeat)
+
+    def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
+        what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
+        if getattr(self, "_awaiting_boot", False):
+            # a reset we saw another master send: the drive answers once it has booted (tens of ms)
+            for _ in range(round(self.timeout / self.dt)):
+                if not self._awaiting_boot:
+                    break
+                if self.lockstep:
+                    self.network.lockstep.advance(self.dt)
+                else:
+                    time.sleep(self.dt)
+            self._awaiting_boot = False
+        if self._connected and self.heartbeat_state == NmtState.STOPPED:
+            # a Stopped drive answers no SDO (CiA 301): Pre-operational first (no PDO there either)
+            self._nmt_own = True
+            self._sent_stop = False
+            self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
+            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+        try:
+            var = self.node.sdo[index]
+            if sub is not None and not isinstance(self.od[index], odt.ODVariable):
+                var = var[sub]  # (a plain variable is its own sub-index 0)
+            if value is None:
+                return var.raw
+            var.raw = value
+            return value
+        except canopen.SdoAbortedError as exc:
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None
+        except canopen.SdoCommunicationError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}") from None
+        except KeyError:
+            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
+        except can.CanError as exc:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}", FaultKind.BUS_ERROR) from None
+
+    def _check_identity(self) -> None:
+        if not self._has(cia402.IDENTITY, 1, writable=False):
+            self.identity = Identity()  # no 0x1018 in the EDS: nothing to check against
+            return
+        vendor = self._sdo(cia402.IDENTITY, 1)
+        product = self._sdo(cia402.IDENTITY, 2) if self._has(cia402.IDENTITY, 2, writable=False) else 0
+        want = self.identity
+        if (want.vendor_id is not None and vendor != want.vendor_id) or (
+            want.product_code is not None and self._has(cia402.IDENTITY, 2, writable=False)
+            and product != want.product_code
+        ):
+            raise AxisConfigError(
+                f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
+                f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
+            )
+
+    def _has(self, index: int, sub: int = 0, writable: bool = True) -> bool:
+        """The EDS has index:sub (and lets it be written)."""
+        if index not in self.od:
+            return False
+        obj = self.od[index]
+        if not isinstance(obj, odt.ODVariable):
+            obj = obj.subindices.get(sub)
+        return obj is not None and (obj.writable or not writable)
+
+    def _configure(self) -> None:
+        """The mode, the configured ``sdo_init`` writes (read back), the PDO plan and the optional objects the
+        drive has (SYNC period, heartbeat, torque limit, watchdogs); what it lacks is said in :attr:`boot_notes`."""
+        where = f"axis {self.name}: node {self.node_id}"
+        notes: list[str] = []
+        caps = self.capabilities
+        if self._has(cia402.SUPPORTED_DRIVE_MODES, writable=False):
+            supported, source = self._sdo(cia402.SUPPORTED_DRIVE_MODES), "0x6502 read from the device"
+        else:
+            supported, source = caps.modes, caps.modes_source
+        mode = choose_mode(supported)
+        if mode is None:
+            raise refuse_mode(where, supported, source)
+        self.mode = mode
+        notes.append(f"mode {MODE_NAMES[mode]} ({source}: 0x{supported:08X})")
+        notes.extend(caps.fallback_lines())
+        for index, sub, value in self.sdo_init:
+            self._sdo(index, sub, value=value)
+            back = self._sdo(index, sub)
+            if back != value:
+                raise AxisConfigError(f"{where}: sdo_init 0x{index:04X}:{sub} written {value}, read back {back}")
+        if self.sdo_init:
+            notes.append(f"sdo_init: {len(self.sdo_init)} value(s) written and read back")
+        self._sdo(cia402.MODES_OF_OPERATION, value=mode)
+        if self._has(cia402.COMM_CYCLE_PERIOD):
+            self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
+        if self._has(cia402.PRODUCER_HEARTBEAT_TIME):
+            self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
+        else:
+            self.heartbeat_ms = 0  # the master cannot watch a drive that sends none
+            notes.append("0x1017 absent: the drive sends no heartbeat; the master watches its TPDOs only")
+        if self.max_torque_permille is not None and self._has(cia402.MAX_TORQUE):
+            limit = self.od[cia402.MAX_TORQUE]
+            permille = self.max_torque_permille
+            if limit.max is not None and permille > limit.max:
+                # the drive's own clip cannot go as high as limits.max_effort: it clips lower (safe), and says so
+                permille = limit.max
+                notes.append(f"0x6072 tops out at {limit.max} per mille ({self.scale.from_permille(limit.max):g} "
+                             f"{self.effort_unit}): the drive clips there, below limits.max_effort")
+            if limit.min is not None and permille < limit.min:
+                raise AxisConfigError(f"{where}: limits.max_effort is {permille} per mille of the rated effort, below "
+                                      f"the drive's lowest 0x6072 ({limit.min}): raise max_effort or lower "
+                                      "rated_effort")
+            self._sdo(cia402.MAX_TORQUE, value=permille)
+        # the drive watches the master's heartbeat (0x1016) and reacts per 0x6007 when it stops;
+        # allow three periods of the master's heartbeat before it counts as lost
+        master_ms = round(self.clock.heartbeat_cycles * self.dt * 1000)
+        if master_ms and self._has(cia402.CONSUMER_HEARTBEAT_TIME, 1):
+            self._sdo(cia402.CONSUMER_HEARTBEAT_TIME, 1, value=(MASTER_NODE_ID << 16) | min(3 * master_ms, 0xFFFF))
+        deadline = any(p.slot.event_timer for p in self.pdo_plan.rx if p.trans_type <= 240)
+        if not self._has(cia402.CONSUMER_HEARTBEAT_TIME, 1) and not deadline:
+            notes.append("no heartbeat consumer (0x1016) and no RPDO deadline (0x14xx:05): the drive will not notice "
+                         "a lost master by itself (node guarding 0x100C/0x100D is not run by drivectl)")
+        try:
+            self._map_pdos()
+        except canopen.SdoAbortedError as exc:
+            raise AxisConfigError(f"{where}: PDO mapping aborted: {exc}") from None
+        notes.extend(self.pdo_plan.lines())
+        if self._has(cia402.MODES_OF_OPERATION_DISPLAY, writable=False):
+            shown = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
+            if shown != mode:
+                raise AxisConfigError(f"{where}: mode not accepted: 0x6061 = {shown} after 0x6060 = {mode} "
+                                      f"({MODE_NAMES[mode]})")
+        self.boot_notes = notes
+
+    def _map_pdos(self) -> None:
+        """The PDO plan written by SDO (CiA 301 7.5.2.36: invalidate, sub 0 = 0, entries, sub 0 = n, validate;
+        a fixed mapping left as it is, a read-only COB-ID or transmission type used as the drive has it); every
+        other PDO disabled, or its mapping emptied where its COB-ID is read-only."""
+        used = [(p.slot, p) for p in (*self.pdo_plan.rx, *self.pdo_plan.tx)]
+        for slot, p in [*used, *((s, None) for s in self.pdo_plan.unused)]:
+            comm, mapping = slot.comm, slot.comm + 0x200
+            current = self._sdo(comm, 1)
+            keep = current & 0x40000000  # the RTR bit as the drive has it
+            if slot.cob_writable:
+                cob = p.cob_id if p is not None else current & 0x7FF
+                self._sdo(comm, 1, value=cob | 0x80000000 | keep)
+            if p is None:
+                if slot.fixed is None:
+                    self._sdo(mapping, 0, value=0)
+                continue
+            if slot.type_writable:
+                self._sdo(comm, 2, value=p.trans_type)
+            if slot.rx and p.trans_type <= 240 and slot.event_timer:
+                self._sdo(comm, 5, value=self.rpdo_timeout_ms)  # the drive's deadline on our cyclic RPDO
+            if slot.fixed is None:
+                self._sdo(mapping, 0, value=0)
+                for k, entry in enumerate(p.entries):
+                    self._sdo(mapping, k + 1, value=entry[0] << 16 | entry[1] << 8 | entry_bits(self.od, entry))
+                self._sdo(mapping, 0, value=len(p.entries))
+            if slot.cob_writable:
+                self._sdo(comm, 1, value=p.cob_id | keep)
+
+    def read_back_mapping(self) -> dict[str, list[int]]:
+        """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
+        out = {}
+        for p in (*self.pdo_plan.rx, *self.pdo_plan.tx):
+            mapping = p.slot.comm + 0x200
+            count = self._sdo(mapping, 0)
+            out[p.slot.name.lower()] = [self._sdo(mapping, s + 1) for s in range(count)]
+        return out

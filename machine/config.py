@@ -48,9 +48,10 @@ max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapo
                                 # (docs/timing.md: x 6 ms, z 6 ms); 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
-# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, 0.03 um off
-# where a move ends against 4 um (ASMC has no integral action against the Coulomb friction), with an
-# unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, docs/precision.md). Its du rms over
+# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
+# 0.06 um after a move against 4 um (paper 004's law has no integral action against the Coulomb friction;
+# docs/standstill.md), with an unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py,
+# docs/precision.md). Its du rms over
 # the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
 # (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle
 # (over 10.5 s: 1.31 against 1.38). `bode` measures it about a constant-velocity bias (the axis slides,
@@ -75,6 +76,7 @@ profile = "circle"
 encoder_m_per_count = 76.29e-9
 [axes.y.controller_settings]
 law = 14
+standstill_gain = 300.0         # N/(um s): integral action at rest, where the law alone stands off (docs/standstill.md)
 [axes.y.limits]
 position_m = [-0.1, 0.1]
 max_effort = 2000.0

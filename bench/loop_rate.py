@@ -12,13 +12,14 @@
 * slcan / socketcand across processes: `drivectl emulate --slcan | --socketcand` in a subprocess, the
   master here, a 2 s trace (the emulator pumps its own bus; the master waits for each cycle's TPDOs).
 
-    python bench/loop_rate.py [--json] [--seconds 3] [--paced-seconds 10]
+    python bench/loop_rate.py [--json] [--seconds 3] [--paced-seconds 10] [--repeat 5]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import time
 
 import can
@@ -146,11 +147,17 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per lockstep run")
     ap.add_argument("--paced-seconds", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=5,
+                    help="lockstep, ping-pong and trace runs, interleaved; the medians are reported (a shared "
+                         "machine's load comes and goes: the ratio is that of medians taken side by side)")
     args = ap.parse_args()
-    one, _ = lockstep_cps(["x"], args.seconds)
-    two, _ = lockstep_cps(["x", "y"], args.seconds)
-    pp = pingpong_cps(20000)
-    trace_x = trace_cps()
+    runs: dict[str, list[float]] = {"one": [], "two": [], "pp": [], "trace": []}
+    for _ in range(max(1, args.repeat)):
+        runs["one"].append(lockstep_cps(["x"], args.seconds)[0])
+        runs["pp"].append(pingpong_cps(20000))
+        runs["two"].append(lockstep_cps(["x", "y"], args.seconds)[0])
+        runs["trace"].append(trace_cps())
+    one, two, pp, trace_x = (statistics.median(runs[k]) for k in ("one", "two", "pp", "trace"))
     slcan = cross_process_cps("slcan", 2.0)
     socketcand = cross_process_cps("socketcand", 2.0)
     _, meta = lockstep_cps(["x"], args.paced_seconds, pace=True)
@@ -174,6 +181,9 @@ def main() -> None:
           f"(target < 0.5 %), worst lateness {worst:.3f} ms")
     if meta.get("stop") != "completed":  # the drive's RPDO deadline runs on the wall clock too: a late master stops
         print(f"  the paced run stopped after {meta.get('cycles')} cycles: {meta.get('stop_detail', meta.get('stop'))}")
+    spread = ", ".join(f"{name} {min(runs[k]):.0f}-{max(runs[k]):.0f}"
+                       for name, k in (("1 axis", "one"), ("ping-pong", "pp"), ("trace x", "trace")))
+    print(f"medians of {len(runs['one'])} interleaved runs; spread: {spread}")
     print(f"ratio lockstep 1 axis / ping-pong: {one / pp:.3f} (target >= 0.25; the loop adds SYNC, 2 TPDOs, "
           "controller, plant)")
 

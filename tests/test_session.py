@@ -507,3 +507,27 @@ def test_a_resident_run_gives_the_controller_the_preview_a_trace_gives(tmp_path)
                                                           ("relative", back.trace.error))}
     assert rms["resident"] < 1.25 * rms["one_shot"] and rms["relative"] < 1.25 * rms["one_shot"]
     assert np.max(np.abs(resident)) < np.max(np.abs(one_shot)) + 0.1e-6
+
+
+def test_the_wall_clock_loop_runs_blas_on_one_thread_and_gives_the_pool_back():
+    """Issue 29: no BLAS worker spinning beside the loop while it runs; what was set before comes back."""
+    from threadpoolctl import threadpool_info
+
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.servo import Channel
+    from drivectl.plant_emulator.models import load_plant
+    from drivectl.plant_emulator.sim_axis import SimAxis
+
+    def blas_threads() -> list[int]:
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas_threads()
+    spec = load_plant("rigid-x")
+    axis = SimAxis(spec.build(0.001), name="x")
+    ch = Channel(axis, make_controller("pid-dob", 0.001, {}, plant=spec, axis="x"), None, config().axis("x").limits)
+    loop, _jump = enabled_wall_loop(ch)
+    try:
+        assert blas_threads() == [1] * len(before) and "blas" in loop.granted
+    finally:
+        loop.close()
+    assert blas_threads() == before

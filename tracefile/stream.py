@@ -23,7 +23,7 @@ API (for the loop that records; :mod:`drivectl.controllers.runtime.servo` or the
 Threading: ``append`` is called from ONE thread (the loop). A daemon thread owned by the writer wakes
 every ``flush_s`` (and whenever a block fills), formats the rows the loop has published since its last
 wake-up and writes and flushes them (to the kernel: a SIGKILL of the process loses nothing flushed; the
-file is fsynced on close). ``inline=True`` (an unpaced run, which has no deadline to keep) writes on the
+file is fsynced on close). ``inline=True`` (a lockstep run, which has no deadline to keep) writes on the
 loop's thread instead: each full block as it fills, and the rows so far whenever ``flush_s`` of wall
 time passed since the last flush (looked at every 32 rows); the thread then only flushes what an idle
 loop left, ``flush_s`` after the last flush. A writer thread taking the GIL in the middle of the loop's

@@ -1,4 +1,5 @@
-"""The process-wide measures a wall-clock loop takes for its thread: the garbage collector and the GIL.
+"""The process-wide measures a wall-clock loop takes for its thread: the garbage collector, the GIL and
+the BLAS thread pool.
 
 Both are the process's, not a loop's: the first wall-clock loop takes them, the last one gives them back.
 """
@@ -60,3 +61,30 @@ def release_switch() -> None:
         _switch_holders -= 1
         if _switch_holders == 0:
             sys.setswitchinterval(_switch_was)
+
+
+# BLAS (OpenBLAS under numpy) is the process's as well. The cycle's products are a few elements; a BLAS
+# worker left spinning after each burned about 10 us of CPU per cycle on the other core, the one a
+# program beside the loop (or the emulated drives across processes) runs on. The first wall-clock loop
+# limits BLAS to the calling thread (threadpoolctl), the last one restores what was set.
+_blas_holders = 0
+_blas_limit = None
+
+
+def take_blas() -> None:
+    global _blas_holders, _blas_limit
+    with _gc_lock:
+        if _blas_holders == 0:
+            from threadpoolctl import threadpool_limits
+
+            _blas_limit = threadpool_limits(limits=1, user_api="blas")
+        _blas_holders += 1
+
+
+def release_blas() -> None:
+    global _blas_holders, _blas_limit
+    with _gc_lock:
+        _blas_holders -= 1
+        if _blas_holders == 0 and _blas_limit is not None:
+            _blas_limit.restore_original_limits()
+            _blas_limit = None

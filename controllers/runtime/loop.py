@@ -60,7 +60,14 @@ from drivectl.controllers.runtime.cycle import (
     sample_axis,
 )
 from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
-from drivectl.controllers.runtime.host import release_gc, release_switch, take_gc, take_switch
+from drivectl.controllers.runtime.host import (
+    release_blas,
+    release_gc,
+    release_switch,
+    take_blas,
+    take_gc,
+    take_switch,
+)
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
 from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
@@ -186,6 +193,7 @@ class ServoLoop:
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
         self._gc_taken = False  # this loop holds the process's collector (wall clock)
+        self._blas_taken = False  # this loop holds the process's BLAS limit (wall clock)
         self.error: BaseException | None = None  # what killed the loop thread, if anything
         #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
         self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
@@ -235,6 +243,9 @@ class ServoLoop:
             if self._switch_taken:
                 release_switch()
                 self._switch_taken = False
+            if self._blas_taken:
+                release_blas()
+                self._blas_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
@@ -577,6 +588,9 @@ class ServoLoop:
             self._switch_taken = True
             self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
                                    "a thread beside the loop gives up the GIL within a tenth of a cycle")
+        take_blas()
+        self._blas_taken = True
+        self.granted["blas"] = "one BLAS thread (the loop's own): no BLAS worker spinning on the other core"
         if self.gc_control:
             take_gc()
             self._gc_taken = True

@@ -70,11 +70,14 @@ class Recording:
         if stream is not None:
             from drivectl.tracefile.stream import TraceWriter
 
+            # in lockstep (nothing runs on a wall clock beside the loop) the loop writes its own full blocks:
+            # no writer thread taking the GIL mid-cycle. Paced, or with drives in another process (their
+            # RPDO deadline is on the wall clock), the thread formats them and the loop never waits.
+            inline = not paced and all(getattr(ch.axis, "lockstep", True) for ch in plan.channels)
             try:
                 for ch, head in zip(plan.channels, self._head, strict=True):
-                    # unpaced: the loop writes its own full blocks (no writer thread taking the GIL mid-cycle)
                     self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head,
-                                                    inline=not paced).start())
+                                                    inline=inline).start())
             except BaseException:
                 self.abandon()
                 raise

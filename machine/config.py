@@ -87,6 +87,10 @@ plant = "two-mass"
 controller = "mbc"              # paper 000: controller = "pid-nftsm" with the two settings below
 profile = "seed-000"
 encoder_m_per_count = 76.29e-9
+[axes.z.emulator]
+# the emulated drive's holding brake (plant_emulator/brake.py): z stands while its power stage is off
+brake_release_ms = 50           # after Operation Enabled is asked for; the drive reports it once released
+brake_engage_ms = 20            # the power stage holds the axis this long after leaving Operation Enabled
 [axes.z.controller_settings]
 # mbc: seed-000 within 0.7 um (PID-NFTSM 19.9 um), stable on every +-10 % corner (bench/precision.py).
 # For paper 000's PID-NFTSM set controller = "pid-nftsm" and uncomment: the paper-scenario defaults

@@ -130,7 +130,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
 
 
 #: [axes.NAME.emulator] keys and the fields of controllers/runtime/homing.py's EmulatorIO
-EMULATOR_KEYS = {"home_switch_m": "home_switch", "limit_switches_m": "limit_switches", "hard_stops_m": "hard_stops"}
+EMULATOR_KEYS = {"home_switch_m": "home_switch", "limit_switches_m": "limit_switches", "hard_stops_m": "hard_stops",
+                 "brake_release_ms": "brake_release_ms", "brake_engage_ms": "brake_engage_ms"}
 
 
 def _add_keyed(table: Any, name: str, obj: Any, keys: Mapping[str, str]) -> None:

@@ -58,6 +58,7 @@ from drivectl.driver.cia402 import MasterStateMachine, PowerState
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
+from drivectl.driver.sync_source import SyncClock  # noqa: F401 - re-exported: the bus's SYNC clock
 from drivectl.driver.units import EffortScale, Encoder
 
 #: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
@@ -86,6 +87,8 @@ CW_RESEND_CYCLES = 20
 #: ... and every this many cycles in any case (0.1 s at 1 kHz; 63 bits per 100 cycles: 0.06 % of 1 Mbit/s per
 #: axis), so a lost frame that changed no power state (the halt bit) heals too
 CW_REFRESH_CYCLES = 100
+#: timeouts across processes are this many times the drive's measured SDO round trip (at least the defaults)
+PEER_RTT_FACTOR = 10.0
 #: the PDO mappings the master knows (machine/bus_budget.py counts their bits)
 MAPPINGS = ("full", "compact", "minimal")
 TPDO_ENTRIES = (
@@ -100,25 +103,6 @@ class Identity:
 
     vendor_id: int | None = None
     product_code: int | None = None
-
-
-class SyncClock:
-    """The SYNC producer of one bus, shared by its axes; also the master's heartbeat producer
-    (node ``MASTER_NODE_ID``, every ``heartbeat_cycles`` SYNCs), which the drives consume (0x1016)."""
-
-    def __init__(self, network: canopen.Network, cob_id: int = SYNC_COB_ID, heartbeat_cycles: int = 100):
-        self.network = network
-        self.cob_id = cob_id
-        self.cycle = 0
-        self.heartbeat_cycles = heartbeat_cycles
-
-    def tick(self) -> None:
-        self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
-        self.network.send_message(self.cob_id, b"")
-        # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
-        # that died before its first one would leave the drive unwatched
-        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 1:
-            self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
 
 
 class CanopenAxis:
@@ -156,6 +140,9 @@ class CanopenAxis:
         self.clock = clock or SyncClock(network)
         self.timeout = timeout  # boot-up and SDO answers
         self.tpdo_timeout = tpdo_timeout  # a cycle's TPDOs, across processes (in lockstep they are there at once)
+        # the floors of the timeouts adapted to the drive's measured answer time at connect() (_adapt_to_peer)
+        self._tpdo_timeout = tpdo_timeout
+        self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
         if max_lost_cycles < 0:
             raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
@@ -185,6 +172,7 @@ class CanopenAxis:
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
         self.node = canopen.RemoteNode(node_id, od)
+        self._sdo_timeout = self.node.sdo.RESPONSE_TIMEOUT  # canopen's default (0.3 s)
         network.add_node(self.node)
         self.node.emcy.add_callback(self._on_emcy)
         self.master = MasterStateMachine(PowerState.SWITCH_ON_DISABLED)
@@ -252,10 +240,16 @@ class CanopenAxis:
         sdo = self.node.sdo
         retries = sdo.MAX_RETRIES
         sdo.MAX_RETRIES = max(retries, 3)
+        if not self.lockstep:
+            # the first answers may take as long as the boot-up could: nothing says yet how fast this drive is
+            sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, self.timeout)
+        t0 = time.perf_counter()
         try:
             self._check_identity()
         finally:
             sdo.MAX_RETRIES = retries
+        if not self.lockstep:
+            self._adapt_to_peer((time.perf_counter() - t0) / 2)
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)
@@ -284,6 +278,14 @@ class CanopenAxis:
         self._consumed = self.clock.cycle
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
         self._connected = True
+
+    def _adapt_to_peer(self, rtt: float) -> None:
+        """Timeouts from what this drive on this bus takes to answer (``rtt``: an SDO round trip, measured):
+        SDO answers and a cycle's TPDOs get PEER_RTT_FACTOR times that, never less than the defaults. A
+        drive behind a slow host or a loaded VM answers late by a factor the defaults cannot know."""
+        self.peer_rtt = rtt
+        self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
+        self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
@@ -482,6 +484,8 @@ class CanopenAxis:
             self._foreign = (FaultKind.ROGUE_RPDO, f"an RPDO on 0x{can_id:03X} that the master did not send "
                              "(a second producer: the drive takes whichever came last)")
         elif can_id == SYNC_COB_ID:
+            if self.clock.periodic is not None:
+                return  # the transport's own SYNC; a second producer shows as a doubled rate (below)
             self._foreign = (FaultKind.ROGUE_SYNC, "a SYNC that the master did not send (a second SYNC producer: "
                              "the drive steps at the wrong rate)")
         elif len(data) == 2 and data[1] in (0, self.node_id):
@@ -515,6 +519,9 @@ class CanopenAxis:
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
         self._cycle = cycle = self.clock.cycle
         self.state_fresh = False
+        if self.clock.periodic is not None and self.clock.periodic.rogue and self._foreign is None:
+            self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
+                             "beside the transport's periodic one: the drive steps at the wrong rate)")
         if not all(self._fresh) and not self.lockstep:
             self._arrived.wait(self.tpdo_timeout)
         self._consumed = cycle
@@ -719,6 +726,10 @@ class CanopenAxis:
         across processes a drive has its own clock and nothing changes."""
         if self.lockstep:
             self.network.lockstep.pace(wall)
+        elif wall is not None:
+            self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
+        else:
+            self.clock.stop_periodic()
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""
@@ -726,6 +737,7 @@ class CanopenAxis:
         return self.error_code
 
     def close(self) -> None:
+        self.clock.stop_periodic()
         subs = self.network.subscribers
         for cob, handler in [*zip(self._tpdo_cob, self._tpdo_handlers, strict=True),
                              (HEARTBEAT_BASE + self.node_id, self._on_heartbeat),

@@ -244,6 +244,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
     from drivectl.machine.bus_budget import resolve_mapping
 
     clock = SyncClock(net)
+    clock.allow_periodic = cfg.bus.sync == "auto"
     for name in names:
         ac = cfg.axis(name)
         axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,

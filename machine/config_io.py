@@ -60,6 +60,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     bus["port"].comment("socketcand only")
     bus.add("load_ceiling_pct", b.load_ceiling_pct)
     bus.add("pdo_mapping", b.pdo_mapping)
+    bus.add("sync", b.sync)
+    bus["sync"].comment("auto: the transport's periodic SYNC where it has one off the Python thread; loop")
     if b.options:
         bus.add("options", dict(b.options))  # [bus.options]: passed to can.Bus as they are
     doc.add("bus", bus)

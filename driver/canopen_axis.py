@@ -142,6 +142,8 @@ class CanopenAxis:
         self.tpdo_timeout = tpdo_timeout  # a cycle's TPDOs, across processes (in lockstep they are there at once)
         # the floors of the timeouts adapted to the drive's measured answer time at connect() (_adapt_to_peer)
         self._tpdo_timeout = tpdo_timeout
+        self._unpaced_wait = tpdo_timeout
+        self._paced = False  # a run paced on the wall clock is under way (pace())
         self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
         if max_lost_cycles < 0:
@@ -286,6 +288,10 @@ class CanopenAxis:
         self.peer_rtt = rtt
         self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
         self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
+        # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs as long as
+        # the drive waits for our SYNC and heartbeat: the consumer time we give it (0x1016); a drive that does
+        # not answer within that is gone, one that answers later than a paced cycle could wait is merely slow
+        self._unpaced_wait = max(self.tpdo_timeout, 3 * self.clock.heartbeat_cycles * self.dt)
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
@@ -523,7 +529,7 @@ class CanopenAxis:
             self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
                              "beside the transport's periodic one: the drive steps at the wrong rate)")
         if not all(self._fresh) and not self.lockstep:
-            self._arrived.wait(self.tpdo_timeout)
+            self._arrived.wait(self.tpdo_timeout if self._paced else self._unpaced_wait)
         self._consumed = cycle
         if self._foreign is not None and not self._foreign_seen:
             self._foreign_seen = True  # raised once; the stop that follows must still cycle
@@ -730,6 +736,7 @@ class CanopenAxis:
             self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
         else:
             self.clock.stop_periodic()
+        self._paced = wall is not None
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

@@ -196,6 +196,7 @@ class EmulatedDrive:
         self._served = False
         self._synced = False  # a SYNC came since the last serve()
         self._anchor = 0.0  # wall time (s) matching the drive's clock when served
+        self._last_serve = 0.0  # wall time (s) of the last serve(): a long absence is this process's own
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self._heartbeat_cycles = 0
@@ -702,8 +703,9 @@ class EmulatedDrive:
         after power-on or a reset), the drive runs on its own and counts the whole gap."""
         now = time.monotonic() if now is None else now
         if not self._served:
-            self._served, self._anchor = True, now
+            self._served, self._anchor, self._last_serve = True, now, now
             return
+        away, self._last_serve = now - self._last_serve, now
         if self._synced:
             # SYNC-locked: the drive's time is the SYNCs' (a slow master is not a dead one)
             self._synced, self._anchor, self._free_running = False, now, False
@@ -714,6 +716,11 @@ class EmulatedDrive:
             if window is None:
                 window = self._consumer[1] if self._consumer is not None else SYNC_LOSS_MS
             if gap_ms <= window:
+                return
+            if self._window_ms is None and away * 1000.0 > 0.5 * window:
+                # this process itself was not running (a starved host or VM): the silence it saw may be its
+                # own, not the master's; it judges again from now (in-process, _window_ms, it never is away)
+                self._anchor = now
                 return
             self._free_running = True
         n = int(gap_ms // self.cycle_ms)

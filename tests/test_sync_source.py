@@ -10,7 +10,8 @@ import pytest
 
 from drivectl.driver.cia301 import HEARTBEAT_BASE, MASTER_NODE_ID, SYNC_COB_ID
 from drivectl.driver.network import unique_virtual_channel
-from drivectl.driver.sync_source import PeriodicSync, SyncClock, start_periodic_sync
+from drivectl.driver.sync_clock import SyncClock
+from drivectl.driver.sync_source import PeriodicSync, start_periodic_sync
 
 
 class _Task:

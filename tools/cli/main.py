@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
-                   "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see README, Faults)")
+                   "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see docs/faults.md)")
     from drivectl.tools.commissioning.learn import add_learning_arguments
 
     add_learning_arguments(t)
@@ -276,7 +276,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                             faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
-                           bus_log=args.bus_log, faults=faults)
+                           bus_log=args.bus_log, faults=faults, paced=args.paced)
     channels = []
     try:
         for name in names:

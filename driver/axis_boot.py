@@ -91,10 +91,10 @@ class AxisBoot:
         self.peer_rtt = rtt
         self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
         self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
-        # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs as long as
-        # the drive waits for our SYNC and heartbeat: the consumer time we give it (0x1016); a drive that does
-        # not answer within that is gone, one that answers later than a paced cycle could wait is merely slow
-        self._unpaced_wait = max(self.tpdo_timeout, 3 * self.clock.heartbeat_cycles * self.dt)
+        # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs up to half
+        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016): a slow
+        # drive is waited for, and a master that gives up still sends its next SYNC within the drive's window
+        self._unpaced_wait = max(self.tpdo_timeout, 1.5 * self.clock.heartbeat_cycles * self.dt)
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up

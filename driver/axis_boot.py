@@ -23,6 +23,9 @@ from drivectl.driver.cia301 import (
 )
 from drivectl.driver.pdo_plan import entry_bits
 
+#: timeouts across processes are this many times the drive's measured SDO round trip (at least the defaults)
+PEER_RTT_FACTOR = 10.0
+
 
 @dataclass(frozen=True)
 class Identity:
@@ -43,10 +46,16 @@ class AxisBoot:
         sdo = self.node.sdo
         retries = sdo.MAX_RETRIES
         sdo.MAX_RETRIES = max(retries, 3)
+        if not self.lockstep:
+            # the first answers may take as long as the boot-up could: nothing says yet how fast this drive is
+            sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, self.timeout)
+        t0 = time.perf_counter()
         try:
             self._check_identity()
         finally:
             sdo.MAX_RETRIES = retries
+        if not self.lockstep:
+            self._adapt_to_peer((time.perf_counter() - t0) / 2)
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)
@@ -75,6 +84,18 @@ class AxisBoot:
         self._consumed = self.clock.cycle
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
         self._connected = True
+
+    def _adapt_to_peer(self, rtt: float) -> None:
+        """Timeouts from what this drive on this bus takes to answer (``rtt``: an SDO round trip, measured):
+        SDO answers and a cycle's TPDOs get PEER_RTT_FACTOR times that, never less than the defaults. A
+        drive behind a slow host or a loaded VM answers late by a factor the defaults cannot know."""
+        self.peer_rtt = rtt
+        self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
+        self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
+        # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs up to half
+        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016): a slow
+        # drive is waited for, and a master that gives up still sends its next SYNC within the drive's window
+        self._unpaced_wait = max(self.tpdo_timeout, 1.5 * self.clock.heartbeat_cycles * self.dt)
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up

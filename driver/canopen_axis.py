@@ -127,6 +127,11 @@ class CanopenAxis(AxisBoot, AxisStop):
         self.clock = clock or SyncClock(network)
         self.timeout = timeout  # boot-up and SDO answers
         self.tpdo_timeout = tpdo_timeout  # a cycle's TPDOs, across processes (in lockstep they are there at once)
+        # the floors of the timeouts adapted to the drive's measured answer time at connect() (_adapt_to_peer)
+        self._tpdo_timeout = tpdo_timeout
+        self._unpaced_wait = tpdo_timeout
+        self._paced = False  # a run paced on the wall clock is under way (pace())
+        self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
         if max_lost_cycles < 0:
             raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
@@ -165,6 +170,7 @@ class CanopenAxis(AxisBoot, AxisStop):
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
         self.node = canopen.RemoteNode(node_id, od)
+        self._sdo_timeout = self.node.sdo.RESPONSE_TIMEOUT  # canopen's default (0.3 s)
         network.add_node(self.node)
         self.node.emcy.add_callback(self._on_emcy)
         self.master = MasterStateMachine(PowerState.SWITCH_ON_DISABLED)
@@ -297,6 +303,8 @@ class CanopenAxis(AxisBoot, AxisStop):
             self._foreign = (FaultKind.ROGUE_RPDO, f"an RPDO on 0x{can_id:03X} that the master did not send "
                              "(a second producer: the drive takes whichever came last)")
         elif can_id == SYNC_COB_ID:
+            if self.clock.periodic is not None:
+                return  # the transport's own SYNC; a second producer shows as a doubled rate (read())
             self._foreign = (FaultKind.ROGUE_SYNC, "a SYNC that the master did not send (a second SYNC producer: "
                              "the drive steps at the wrong rate)")
         elif len(data) == 2 and data[1] in (0, self.node_id):
@@ -329,9 +337,12 @@ class CanopenAxis(AxisBoot, AxisStop):
             except can.CanError as exc:
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
         self._cycle = cycle = self.clock.cycle
+        if self.clock.periodic is not None and self.clock.periodic.rogue and self._foreign is None:
+            self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
+                             "beside the transport's periodic one: the drive steps at the wrong rate)")
         self.state_fresh = False
         if not all(self._fresh) and not self.lockstep:
-            self._arrived.wait(self.tpdo_timeout)
+            self._arrived.wait(self.tpdo_timeout if self._paced else self._unpaced_wait)
         self._consumed = cycle
         if self._foreign is not None and not self._foreign_seen:
             self._foreign_seen = True  # raised once; the stop that follows must still cycle
@@ -460,6 +471,11 @@ class CanopenAxis(AxisBoot, AxisStop):
         across processes a drive has its own clock and nothing changes."""
         if self.lockstep:
             self.network.lockstep.pace(wall)
+        elif wall is not None:
+            self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
+        else:
+            self.clock.stop_periodic()
+        self._paced = wall is not None
 
     def enable_blocker(self) -> str:
         """Why the drive is not Operation Enabled, from what it reports now by SDO (statusword, 0x603F or the last
@@ -485,6 +501,7 @@ class CanopenAxis(AxisBoot, AxisStop):
         return self.error_code
 
     def close(self) -> None:
+        self.clock.stop_periodic()
         subs = self.network.subscribers
         for cob, handler in [*zip(self._tpdo_cob, self._tpdo_handlers, strict=True),
                              (HEARTBEAT_BASE + self.node_id, self._on_heartbeat),

@@ -1,10 +1,13 @@
-"""The SYNC producer of one bus, shared by its axes (and the master's heartbeat producer)."""
+"""The SYNC producer of one bus, shared by its axes (and the master's heartbeat producer): the loop, or the
+transport's periodic transmit while a wall-clock run lasts (driver/sync_source.py)."""
 
 from __future__ import annotations
 
+import can
 import canopen
 
 from drivectl.driver.cia301 import HEARTBEAT_BASE, MASTER_NODE_ID, SYNC_COB_ID, NmtState
+from drivectl.driver.sync_source import SYNC_WAIT_PERIODS, PeriodicSync, start_periodic_sync
 
 
 class SyncClock:
@@ -16,11 +19,51 @@ class SyncClock:
         self.cob_id = cob_id
         self.cycle = 0
         self.heartbeat_cycles = heartbeat_cycles
+        #: the transport's periodic SYNC while a paced run lasts (driver/sync_source.py); None: the loop sends it
+        self.periodic: PeriodicSync | None = None
+        self._periodic_base = 0
+        #: who sends the SYNC now, and why the loop does where it does
+        self.sync_source, self.sync_note = "loop", ""
+        self.allow_periodic = True  # False: the loop always sends it (bus.sync = "loop")
 
     def tick(self) -> None:
-        self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
-        self.network.send_message(self.cob_id, b"")
+        prev = self.cycle
+        if self.periodic is None:
+            self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
+            self.network.send_message(self.cob_id, b"")
+        else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
+            seen = self.periodic.wait_beyond(self.cycle - self._periodic_base)
+            if self._periodic_base + seen == prev:
+                raise can.CanOperationError(f"no SYNC from the periodic transmit for "
+                                            f"{SYNC_WAIT_PERIODS * self.periodic.dt * 1000:g} ms")
+            self.cycle = self._periodic_base + seen
         # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
         # that died before its first one would leave the drive unwatched
-        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 1:
+        hb = self.heartbeat_cycles
+        if hb and (self.cycle - 1) // hb > (prev - 1) // hb:
             self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
+
+    def start_periodic(self, dt: float) -> None:
+        """The transport sends the SYNC from now on, where it can off the Python thread (else the loop
+        goes on sending it; :attr:`sync_note` says why)."""
+        if self.periodic is not None or self.network.bus is None:
+            return
+        if not self.allow_periodic:
+            self.sync_note = "bus.sync = \"loop\""
+            return
+        periodic, why = start_periodic_sync(self.network.bus, self.cob_id, dt)
+        if periodic is None:
+            self.sync_source, self.sync_note = "loop", why
+            return
+        self._periodic_base = self.cycle
+        self.network.subscribe(self.cob_id, periodic.on_sync)
+        self.periodic = periodic
+        self.sync_source, self.sync_note = "transport", ""
+
+    def stop_periodic(self) -> None:
+        """The loop sends the SYNC again (the paced run ended)."""
+        periodic, self.periodic = self.periodic, None
+        if periodic is not None:
+            periodic.stop()
+            self.network.unsubscribe(self.cob_id, periodic.on_sync)
+            self.sync_source = "loop"

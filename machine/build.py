@@ -270,6 +270,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
     from drivectl.machine.bus_budget import resolve_mapping
 
     clock = SyncClock(net)
+    clock.allow_periodic = cfg.bus.sync == "auto"
     machine.deadlines = axis_deadlines(cfg, names, specs)
     for name in names:
         ac = cfg.axis(name)

@@ -90,6 +90,10 @@ plant = "two-mass"
 controller = "mbc"              # paper 000: controller = "pid-nftsm" with the two settings below
 profile = "seed-000"
 encoder_m_per_count = 76.29e-9
+[axes.z.emulator]
+# the emulated drive's holding brake (plant_emulator/brake.py): z stands while its power stage is off
+brake_release_ms = 50           # after Operation Enabled is asked for; the drive reports it once released
+brake_engage_ms = 20            # the power stage holds the axis this long after leaving Operation Enabled
 [axes.z.controller_settings]
 # mbc: seed-000 within 0.7 um (PID-NFTSM 19.9 um), stable on every +-10 % corner (bench/precision.py).
 # For paper 000's PID-NFTSM set controller = "pid-nftsm" and uncomment: the paper-scenario defaults
@@ -134,6 +138,9 @@ class BusConfig:
     options: dict[str, Any] = field(default_factory=dict)  # [bus.options]: keyword arguments for can.Bus
     load_ceiling_pct: float = 70.0  # the most of the bitrate the cyclic frames may take (machine/bus_budget.py)
     pdo_mapping: str = "auto"  # full | compact | minimal | auto: the first that fits the ceiling (bus_budget.py)
+    #: who sends the SYNC of a wall-clock run: "auto" the transport's periodic transmit where it runs off the
+    #: Python thread (SocketCAN's kernel, driver/sync_source.py), else the loop; "loop" always the loop
+    sync: str = "auto"
 
     def open_kwargs(self) -> dict[str, Any]:
         """What :func:`drivectl.driver.network.open_bus` takes besides interface, channel and bitrate."""
@@ -150,7 +157,7 @@ class ConfigError(ValueError):
 def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     """The [bus] table: any interface python-can knows, its options passed through to ``can.Bus``."""
     extra = set(bus_raw) - {"interface", "channel", "bitrate", "host", "port", "options", "load_ceiling_pct",
-                            "pdo_mapping"}
+                            "pdo_mapping", "sync"}
     if extra:
         raise ConfigError(f"{src}: bus.{sorted(extra)[0]}: unknown key")
     from drivectl.driver.network import INTERFACES, RESERVED_OPTIONS
@@ -192,8 +199,11 @@ def parse_bus(bus_raw: dict[str, Any], src: str) -> BusConfig:
     if mapping not in ("full", "compact", "minimal", "auto"):
         raise ConfigError(f"{src}: bus.pdo_mapping: expected \"auto\", \"full\", \"compact\" or \"minimal\", "
                           f"got {mapping!r}")
+    sync = bus_raw.get("sync", "auto")
+    if sync not in ("auto", "loop"):
+        raise ConfigError(f"{src}: bus.sync: expected \"auto\" or \"loop\", got {sync!r}")
     return BusConfig(interface, channel, bitrate, _string(src, "bus.host", bus_raw.get("host", "127.0.0.1")), port,
-                     dict(options), ceiling, mapping)
+                     dict(options), ceiling, mapping, sync)
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     bus["port"].comment("socketcand only")
     bus.add("load_ceiling_pct", b.load_ceiling_pct)
     bus.add("pdo_mapping", b.pdo_mapping)
+    bus.add("sync", b.sync)
+    bus["sync"].comment("auto: the transport's periodic SYNC where it has one off the Python thread; loop")
     if b.options:
         bus.add("options", dict(b.options))  # [bus.options]: passed to can.Bus as they are
     doc.add("bus", bus)
@@ -133,7 +135,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
 
 
 #: [axes.NAME.emulator] keys and the fields of controllers/runtime/homing.py's EmulatorIO
-EMULATOR_KEYS = {"home_switch_m": "home_switch", "limit_switches_m": "limit_switches", "hard_stops_m": "hard_stops"}
+EMULATOR_KEYS = {"home_switch_m": "home_switch", "limit_switches_m": "limit_switches", "hard_stops_m": "hard_stops",
+                 "brake_release_ms": "brake_release_ms", "brake_engage_ms": "brake_engage_ms"}
 
 
 def _add_keyed(table: Any, name: str, obj: Any, keys: Mapping[str, str]) -> None:

@@ -27,6 +27,7 @@ from drivectl.driver.cia402 import (
     PowerState,
     decode_command,
 )
+from drivectl.plant_emulator.brake import HoldingBrake
 from drivectl.plant_emulator.models import Plant, PlantState
 
 #: quick stop option codes (0x605A) after which the drive drops to Switch On Disabled by itself
@@ -70,6 +71,10 @@ class DriveModel:
         self.voltage = True
         #: switches and mechanical stops (controllers/runtime/homing.py EmulatorIO): 0x60FD and hard stops
         self.io = io
+        #: the holding brake, when the axis has one (plant_emulator/brake.py): engaged at power-on
+        spec = getattr(io, "brake", None)
+        self.brake = None if spec is None else HoldingBrake(spec, plant.dt, plant.design.total_mass,
+                                                            self.state.s[0])
 
     @property
     def position(self) -> float:
@@ -88,9 +93,7 @@ class DriveModel:
             effort = self.applied
             if self.force_noise:
                 effort += self._rng.gauss(0.0, self.force_noise)
-            self.plant.step(self.state, effort)
-            if self.io is not None and self.io.hard_stops is not None:
-                self._hard_stop(self.io.hard_stops)
+            self._step(effort)
         self.syncs += 1
         if self.transport_delay:
             self._take(controlword, setpoint)
@@ -110,21 +113,36 @@ class DriveModel:
         """One cycle of the drive's own clock with no SYNC (the master silent, or an SDO-only master):
         the plant moves on under the effort applied, the controlword received since is taken."""
         if self.syncs or self.applied:
-            self.plant.step(self.state, self.applied)
-            if self.io is not None and self.io.hard_stops is not None:
-                self._hard_stop(self.io.hard_stops)
+            self._step(self.applied)
         self._take(controlword, setpoint)
+
+    def _step(self, effort: float) -> None:
+        brake = self.brake
+        if brake is not None:
+            if brake.engaging:
+                effort = brake.effort(self.state.s[1])  # the drive's standstill control, not the setpoint
+            brake.before_step(self.state.s)
+        self.plant.step(self.state, effort)
+        if brake is not None:
+            brake.clamp(self.state.s)
+        if self.io is not None and self.io.hard_stops is not None:
+            self._hard_stop(self.io.hard_stops)
 
     @property
     def following(self) -> bool:
         """Statusword bit 12 in cyclic synchronous torque: the drive follows the target torque
         (Operation Enabled, no halt, a mode it runs)."""
-        return self.power is PowerState.OPERATION_ENABLED and not self._last_cw & HALT_BIT and self.mode_ok
+        return (self.power is PowerState.OPERATION_ENABLED and not self._last_cw & HALT_BIT and self.mode_ok
+                and not (self.brake is not None and self.brake.engaging))
 
     def _take(self, controlword: int, setpoint: float) -> None:
+        before = self.power
         self._apply_controlword(controlword)
+        brake = self.brake
+        if brake is not None:
+            self.power = brake.gate(before, self.power)
         enabled = self.power is PowerState.OPERATION_ENABLED and not controlword & HALT_BIT and self.mode_ok
-        self.applied = setpoint if enabled else 0.0
+        self.applied = setpoint if enabled and not (brake is not None and brake.engaging) else 0.0
 
     def _apply_controlword(self, cw: int) -> None:
         power = self.power
@@ -160,5 +178,7 @@ class DriveModel:
     def fault(self, code: int) -> None:
         """Enter Fault Reaction Active (zero torque now), Fault at the next SYNC; 0x603F = code."""
         self.error_code = code
-        self.power = PowerState.FAULT_REACTION_ACTIVE
+        before, self.power = self.power, PowerState.FAULT_REACTION_ACTIVE
+        if self.brake is not None:
+            self.power = self.brake.gate(before, self.power)
         self.applied = 0.0

@@ -165,8 +165,9 @@ class DriveClock:
         after power-on or a reset), the drive runs on its own and counts the whole gap."""
         now = time.monotonic() if now is None else now
         if not self._served:
-            self._served, self._anchor = True, now
+            self._served, self._anchor, self._last_serve = True, now, now
             return
+        away, self._last_serve = now - self._last_serve, now
         if self._synced:
             # SYNC-locked: the drive's time is the SYNCs' (a slow master is not a dead one)
             self._synced, self._anchor, self._free_running = False, now, False
@@ -177,6 +178,11 @@ class DriveClock:
             if window is None:
                 window = self._consumer[1] if self._consumer is not None else SYNC_LOSS_MS
             if gap_ms <= window:
+                return
+            if self._window_ms is None and away * 1000.0 > 0.5 * window:
+                # this process itself was not running (a starved host or VM): the silence it saw may be its
+                # own, not the master's; it judges again from now (in-process, _window_ms, it never is away)
+                self._anchor = now
                 return
             self._free_running = True
         n = int(gap_ms // self.cycle_ms)

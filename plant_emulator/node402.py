@@ -153,6 +153,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._served = False
         self._synced = False  # a SYNC came since the last serve()
         self._anchor = 0.0  # wall time (s) matching the drive's clock when served
+        self._last_serve = 0.0  # wall time (s) of the last serve(): a long absence is this process's own
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self._heartbeat_cycles = 0

@@ -38,7 +38,8 @@ following_time_s = 0.02
 # every table and key a session, the run checks, the bus budget and the stop's escalation read
 EVERYTHING = DEFAULT_CONFIG_TOML.replace("clipped_warn = 0.01", "clipped_warn = 0.02", 1).replace(
     "node_id = 2", 'node_id = 2\nlast_resort = "none"', 1).replace(
-    'interface = "virtual"', 'interface = "virtual"\npdo_mapping = "compact"\nload_ceiling_pct = 60', 1) + """
+    'interface = "virtual"', 'interface = "virtual"\npdo_mapping = "compact"\nload_ceiling_pct = 60', 1).replace(
+    "[axes.z.emulator]\n", "[axes.z.emulator]\nhome_switch_m = 0.01\nhard_stops_m = [-0.2, 0.2]\n", 1) + """
 [axes.z.motion]
 max_velocity_m_s = 0.05
 jog_deadman_s = 0.3
@@ -46,9 +47,6 @@ jog_deadman_s = 0.3
 method = "switch"
 direction = "positive"
 hard_stop_effort = 2.0
-[axes.z.emulator]
-home_switch_m = 0.01
-hard_stops_m = [-0.2, 0.2]
 """
 
 

@@ -290,3 +290,19 @@ def test_the_resident_wall_clock_loop_is_caught_by_the_drive_deadline_too(tmp_pa
         m.close()
     assert axis.power is not cia402.PowerState.OPERATION_ENABLED
     assert drive.network.lockstep._wall is None  # the loop ended: the drive is back on SYNC time
+
+
+def test_the_drives_own_absence_is_not_the_masters_silence(served):
+    """A starved host or VM stops the emulator's process too: a gap it slept through itself is no evidence
+    against the master (it judges again from its return); silence it watched is."""
+    s = served
+    s.sdo_write(cia402.CONSUMER_HEARTBEAT_TIME, 1, (0x7F << 16) | 300, 4)
+    s.sdo_write(0x1400, 5, 2, 2)
+    s.enable()
+    s.send(0x201, struct.pack("<Hh", 0x0F, 0))
+    s.serve(0.400)  # the emulator itself was away 400 ms (> the 300 ms window): an RPDO was waiting, no SYNC
+    assert s.reactions == [] and s.drive.drive.power is cia402.PowerState.OPERATION_ENABLED
+    t = s.now
+    while not s.reactions and s.now - t < 1.0:  # then the master is silent while the emulator watches
+        s.serve(0.010)
+    assert s.reactions == [0x8250] and 0.29 <= s.now - t <= 0.32

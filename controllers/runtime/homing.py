@@ -24,6 +24,8 @@ import threading
 from dataclasses import dataclass, replace
 from typing import Any
 
+from drivectl.plant_emulator.brake import BrakeSpec
+
 METHODS = ("here", "switch", "hard-stop")
 #: 0x60FD bits (CiA 402): negative limit switch, positive limit switch, home switch
 INPUT_BITS = {"negative-limit": 0, "positive-limit": 1, "home": 2}
@@ -102,6 +104,16 @@ class EmulatorIO:
     home_switch: float | None = None
     limit_switches: tuple[float, float] | None = None
     hard_stops: tuple[float, float] | None = None
+    #: a holding brake (plant_emulator/brake.py), None: the axis has none
+    brake: BrakeSpec | None = None
+
+    @property
+    def brake_release_ms(self) -> float | None:
+        return None if self.brake is None else self.brake.release_ms
+
+    @property
+    def brake_engage_ms(self) -> float | None:
+        return None if self.brake is None else self.brake.engage_ms
 
     def inputs(self, position: float) -> int:
         """0x60FD at ``position``: bit 0 negative limit, bit 1 positive limit, bit 2 home."""
@@ -121,10 +133,10 @@ def parse_emulator_io(src: str, key: str, raw: Any) -> EmulatorIO | None:
         return None
     if not isinstance(raw, dict):
         raise ValueError(f"{src}: {key}: expected a table")
-    extra = set(raw) - {"home_switch_m", "limit_switches_m", "hard_stops_m"}
+    extra = set(raw) - {"home_switch_m", "limit_switches_m", "hard_stops_m", "brake_release_ms", "brake_engage_ms"}
     if extra:
         raise ValueError(f"{src}: {key}.{sorted(extra)[0]}: unknown key (known: home_switch_m, limit_switches_m, "
-                         "hard_stops_m)")
+                         "hard_stops_m, brake_release_ms, brake_engage_ms)")
     out: dict[str, Any] = {}
     home = raw.get("home_switch_m")
     if home is not None:
@@ -140,6 +152,13 @@ def parse_emulator_io(src: str, key: str, raw: Any) -> EmulatorIO | None:
         if not (numbers and v[0] < v[1]):
             raise ValueError(f"{src}: {key}.{k}: expected [lower, upper] in m (lower < upper), got {v!r}")
         out[field] = (float(v[0]), float(v[1]))
+    delays = {k: raw.get(k) for k in ("brake_release_ms", "brake_engage_ms")}
+    if any(v is not None for v in delays.values()):
+        for k, v in delays.items():
+            if isinstance(v, bool) or not isinstance(v, int | float) or not (0 <= v <= 10_000):
+                raise ValueError(f"{src}: {key}.{k}: expected a delay in ms (0..10000; a brake needs both delays), "
+                                 f"got {v!r}")
+        out["brake"] = BrakeSpec(float(delays["brake_release_ms"]), float(delays["brake_engage_ms"]))
     return EmulatorIO(**out)
 
 

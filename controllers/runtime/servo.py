@@ -381,11 +381,14 @@ def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
 
 #: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
 STATE_CHANGE_CYCLES = 20
+#: the longest an enable may take (a holding brake's release delay included), s
+ENABLE_WAIT_S = 0.5
 
 
-def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool]) -> bool:
+def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool],
+                 cycles: int = STATE_CHANGE_CYCLES) -> bool:
     """Run zero-effort cycles until every axis satisfies ``done`` (state changes happen at SYNC)."""
-    for _ in range(STATE_CHANGE_CYCLES):
+    for _ in range(cycles):
         if all(done(ch.axis) for ch in channels):
             return True
         for ch in channels:
@@ -398,12 +401,15 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     """Enable every axis through the cycle (zero effort, halt set) before the profile starts."""
     for ch in channels:
         ch.axis.enable()
-    if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED):
+    # a drive with a holding brake reports Operation Enabled once the brake has released (tens to
+    # hundreds of ms): wait ENABLE_WAIT_S, not just the few cycles of the state machine itself
+    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
+    if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
         late = [f"{ch.axis.name} ({ch.axis.power.value}"
                 + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
                 for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
-        raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {STATE_CHANGE_CYCLES} cycles")
+        raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {cycles} cycles")
 
 
 def _progress(n: int, enabled: bool):

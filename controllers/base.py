@@ -23,10 +23,11 @@ from typing import Any, ClassVar
 import numpy as np
 
 from drivectl.driver.axis import Feedback
+from drivectl.errors import InputError
 from drivectl.profiles.base import Reference
 
 
-class SettingsError(ValueError):
+class SettingsError(InputError):
     """A setting is missing, of the wrong type or out of range. The message is one line."""
 
 

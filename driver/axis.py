@@ -11,6 +11,7 @@ from enum import Enum
 from typing import Protocol, runtime_checkable
 
 from drivectl.driver.cia402 import PowerState
+from drivectl.errors import EXIT_BAD_INPUT, DrivectlError
 
 
 @dataclass(slots=True, frozen=True)
@@ -47,7 +48,7 @@ class FaultKind(Enum):
     RUN_CHECK = "run check"  # a [checks] fault threshold passed (controllers/runtime/run_checks.py)
 
 
-class AxisError(RuntimeError):
+class AxisError(DrivectlError, RuntimeError):
     """An axis cannot do what was asked (not enabled, fault active, transport lost); ``kind`` says
     which fault was detected, when it was one."""
 
@@ -59,6 +60,8 @@ class AxisError(RuntimeError):
 class AxisConfigError(AxisError):
     """The drive or its description refused the configuration before anything moved (an EDS
     without a required object, an SDO abort while configuring): bad input, not a fault."""
+
+    exit_code = EXIT_BAD_INPUT
 
 
 @runtime_checkable

@@ -24,13 +24,15 @@ import threading
 from dataclasses import dataclass, replace
 from typing import Any
 
+from drivectl.errors import DrivectlError
+
 METHODS = ("here", "switch", "hard-stop")
 #: 0x60FD bits (CiA 402): negative limit switch, positive limit switch, home switch
 INPUT_BITS = {"negative-limit": 0, "positive-limit": 1, "home": 2}
 DIGITAL_INPUTS = 0x60FD
 
 
-class HomingError(RuntimeError):
+class HomingError(DrivectlError, RuntimeError):
     """Homing could not find its reference (switch not found within max_travel_m, ...)."""
 
 

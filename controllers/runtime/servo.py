@@ -33,6 +33,7 @@ from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.run_checks import JumpState, RunChecks, RunGuard, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.errors import InputError
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
 from drivectl.tracefile.format import Trace, format_value
 
@@ -46,7 +47,7 @@ class StopReason(Enum):
     AXIS_ERROR = "axis error"
 
 
-class LimitError(ValueError):
+class LimitError(InputError):
     """A run was refused before anything moved (profile outside limits, axis not at the start)."""
 
 

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
+from drivectl.errors import InputError
 from drivectl.tools.cli.quantity import QuantityError, format_position, parse_quantity
 
 #: how long a motion command waits for its end unless ``timeout=`` says otherwise (s, the loop's clock)
@@ -48,7 +49,7 @@ HELP = """commands (positions: m mm um nm; speeds: m/s mm/s um/s; times: s ms):
 a command ending in & returns at once; Ctrl-C stops every axis and keeps the session"""
 
 
-class ShellError(ValueError):
+class ShellError(InputError):
     """A command that cannot be carried out as typed: one line, the session goes on."""
 
 

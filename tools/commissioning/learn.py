@@ -57,6 +57,7 @@ import numpy as np
 from drivectl.controllers.base import Controller
 from drivectl.controllers.learning import LearnedFeedforward
 from drivectl.driver.axis import Feedback
+from drivectl.errors import InputError
 from drivectl.plant_emulator.models import PlantSpec
 from drivectl.profiles.base import Reference
 
@@ -80,7 +81,7 @@ START_RAMP_S = 0.005
 RESPONSE_PEAK_M = 5e-6
 
 
-class LearnedFileError(ValueError):
+class LearnedFileError(InputError):
     """A learned-correction file that does not fit the run; one line naming the file and the field."""
 
 

@@ -25,10 +25,11 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
-from drivectl.controllers.base import Controller
+from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.run_checks import JumpState, RunChecks, RunGuard, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
@@ -72,32 +73,27 @@ def check_run_length(duration: float, dt: float, what: str = "run: duration", *,
 
 
 @dataclass(frozen=True)
-class Limits:
+class Limits(Settings):
     """What an axis may do. Defaults allow everything but a following error beyond 5 mm."""
 
+    where: ClassVar[str] = "limits"
+
     position: tuple[float, float] | None = None  # soft limits, m (0x607D)
-    max_effort: float = math.inf  # the command is clipped to +-max_effort
-    following_error: float = 5e-3  # window, m (0x6065)
-    following_time: float = 0.0  # s the error may stay outside the window (0x6066)
-    max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
-    #: m: a second difference of the position beyond this is an encoder glitch (controllers/runtime/run_checks.py)
-    max_jump: float = 5e-4
+    max_effort: float = param(math.inf, lo=0.0, lo_open=True, finite=False,
+                              doc="the command is clipped to +-max_effort (inf: not limited)")
+    following_error: float = param(5e-3, lo=0.0, lo_open=True, unit="m", doc="window (0x6065)")
+    following_time: float = param(0.0, lo=0.0, unit="s", doc="the error may stay outside the window this long (0x6066)")
+    max_speed: float = param(2.0, lo=0.0, lo_open=True, unit="m/s",
+                             doc="a position step faster than this between two samples is implausible")
+    max_jump: float = param(5e-4, lo=0.0, lo_open=True, unit="m", doc="a second difference of the position beyond "
+                            "this is an encoder glitch (controllers/runtime/run_checks.py)")
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
-    def __post_init__(self) -> None:
+    def validate(self, source: str = "limits", prefix: str = "") -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
-            raise ValueError(f"limits: position: lower limit must be below upper, got {self.position}")
-        if not self.max_effort > 0:
-            raise ValueError(f"limits: max_effort: must be > 0, got {self.max_effort}")
-        if not self.following_error > 0:
-            raise ValueError(f"limits: following_error: must be > 0, got {self.following_error}")
-        if not self.following_time >= 0:
-            raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
-        if not self.max_speed > 0:
-            raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
-        if not self.max_jump > 0:
-            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
+            raise SettingsError(f"{source}: {prefix}position: lower limit must be below upper, got {self.position}")
+        super().validate(source, prefix)
 
 
 #: power states with the torque off: where a stop must end

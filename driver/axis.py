@@ -7,7 +7,7 @@ per-mille exist only inside the transports.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
 from drivectl.driver.cia402 import PowerState
@@ -29,8 +29,9 @@ class Feedback:
 LAST_RESORTS = ("nmt-reset", "none")
 
 
-class FaultKind(Enum):
-    """What the master detected; the value is what traces and messages say."""
+class FaultKind(StrEnum):
+    """What ended a run other than completion; the value (the member itself, a str) is what traces and
+    messages say."""
 
     TPDO_TIMEOUT = "tpdo timeout"
     DRIVE_FAULT = "drive fault"
@@ -46,6 +47,7 @@ class FaultKind(Enum):
     FOREIGN_NMT = "foreign nmt"
     LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
     RUN_CHECK = "run check"  # a [checks] fault threshold passed (controllers/runtime/run_checks.py)
+    INTERRUPTED = "interrupted"  # SIGINT / SIGTERM: the operator stopped it (controllers/runtime/interrupt.py)
 
 
 class AxisError(DrivectlError, RuntimeError):

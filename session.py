@@ -58,11 +58,11 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     """In the loop's cycle, before a new command takes the axis: False (the handle ended) when the axis
     is no longer servoing; else the command under way, if another, ends as replaced."""
     if rt.state is not AxisState.SERVO:
-        handle._end("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+        handle.finish("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
         return False
     if rt.handle is not None and rt.handle is not handle:
         old, rt.handle = rt.handle, None
-        old._end("stopped", rt, f"replaced by {kind}")
+        old.finish("stopped", rt, f"replaced by {kind}")
     rt.ch.controller.use_preview(None)  # a run's preview ends with the run (a run installs its own)
     return True
 
@@ -145,7 +145,7 @@ class AxisControl:
         rt.state = AxisState.ENABLING  # before the loop takes it: waiting below must not end at once
         loop.submit(go)
         if not self._m.run_until(lambda: rt.state is not AxisState.ENABLING, timeout):
-            loop.submit(lambda: self._m.loop._disable(rt, "enable timed out"))
+            loop.submit(lambda: self._m.loop.disable_axis(rt, "enable timed out"))
             raise AxisError(f"axis {self.name}: not Operation Enabled within {timeout:g} s (drive reports "
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
@@ -154,7 +154,7 @@ class AxisControl:
     def disable(self, timeout: float = 1.0) -> None:
         """Torque off; returns once the drive reports a state without torque (AxisError if not)."""
         loop = self._m.loop
-        loop.submit(lambda: loop._disable(self._rt, "disabled"))
+        loop.submit(lambda: loop.disable_axis(self._rt, "disabled"))
         axis = self._rt.ch.axis
         if not self._m.run_until(lambda: axis.power not in (PowerState.OPERATION_ENABLED,
                                                          PowerState.QUICK_STOP_ACTIVE), timeout):
@@ -240,7 +240,7 @@ class AxisControl:
             toward = rt.traj.position + math.copysign(1e3, velocity)
         if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
             done = Move(self._m.loop, self.name, "jog", velocity)
-            done._end("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
+            done.finish("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
                       "window inside it); nothing moved")
             return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
@@ -270,11 +270,11 @@ class AxisControl:
 
         def go() -> None:
             if rt.state is not AxisState.SERVO:
-                handle._end("done", rt, "not enabled")
+                handle.finish("done", rt, "not enabled")
                 return
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
-                old._end("stopped", rt, why)
+                old.finish("stopped", rt, why)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration
@@ -520,7 +520,7 @@ class Machine:
         finally:
             self.hardware.close()
             for h in self._streamed:
-                h._close_record()  # a run cut short by the close: its record ends here, trailer and all
+                h.close_record()  # a run cut short by the close: its record ends here, trailer and all
         # what the drives said, never what was meant: an axis that did not confirm is named
         self.unconfirmed = [n for n, st in states.items() if st == PowerState.OPERATION_ENABLED.value]
         for n in self.unconfirmed:
@@ -580,10 +580,10 @@ def connect(
                                       plant=specs[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs)
+    if clock is None:
+        clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall")
     try:
-        if clock is None:
-            clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
         channels = []
         motion = {}
         for n in names:

@@ -34,9 +34,7 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import can
@@ -44,9 +42,10 @@ import canopen
 
 from drivectl.driver import cia402
 from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.axis_boot import AxisBoot, Identity
+from drivectl.driver.axis_stop import AxisStop
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
-    MASTER_NODE_ID,
     NMT_COB_ID,
     RPDO_BASE,
     SYNC_COB_ID,
@@ -58,7 +57,20 @@ from drivectl.driver.cia402 import MasterStateMachine, PowerState
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
+from drivectl.driver.pdo_mappings import (  # noqa: F401 - re-exported: the mappings the master knows
+    COMPACT_TPDO_ENTRIES,
+    CW_REFRESH_CYCLES,
+    CW_RESEND_CYCLES,
+    MAPPINGS,
+    MINIMAL_RPDO_ENTRIES,
+    MINIMAL_TPDO_ENTRIES,
+    RPDO_ENTRIES,
+    TPDO_ENTRIES,
+)
+from drivectl.driver.sync_clock import SyncClock
 from drivectl.driver.units import EffortScale, Encoder
+
+__all__ = ["CanopenAxis", "Identity", "SyncClock"]
 
 #: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
 _HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
@@ -66,62 +78,8 @@ _HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
 
-#: the mapping drivectl configures: RPDO1 controlword + target torque; TPDO1 statusword + position;
-#: TPDO2 velocity + torque actual (48 bits each, synchronous, transmission type 1)
-RPDO_ENTRIES = ((cia402.CONTROLWORD, 0), (cia402.TARGET_TORQUE, 0))
-#: the compact mapping (``bus.pdo_mapping = "compact"``, machine/bus_budget.py): one 8-byte TPDO with statusword,
-#: position and torque actual; the velocity derived on the host from two positions (as SimAxis does)
-COMPACT_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),)
-#: the minimal mapping (``bus.pdo_mapping = "minimal"``): TPDO1 statusword + position (velocity derived on the
-#: host, torque actual not mapped: read 0x6077 by SDO where a tool needs it); RPDO1 the target torque alone,
-#: synchronous; RPDO2 the controlword, event-driven (transmission type 255): sent in the cycles where the
-#: controlword changes (CiA 301 practice), resent while a transition is pending and every CW_REFRESH_CYCLES, so
-#: it costs the bus almost nothing in steady state
-MINIMAL_TPDO_ENTRIES = (((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),)
-MINIMAL_RPDO_ENTRIES = (((cia402.TARGET_TORQUE, 0),), ((cia402.CONTROLWORD, 0),))
-#: the minimal mapping's RPDO2 is sent again each cycle, up to this many cycles after a change, while the drive
-#: has not reported the state it asks for (the cycles a run waits for a transition: controllers/runtime/servo.py
-#: STATE_CHANGE_CYCLES), so one lost frame costs a transition one cycle, not the transition
-CW_RESEND_CYCLES = 20
-#: ... and every this many cycles in any case (0.1 s at 1 kHz; 63 bits per 100 cycles: 0.06 % of 1 Mbit/s per
-#: axis), so a lost frame that changed no power state (the halt bit) heals too
-CW_REFRESH_CYCLES = 100
-#: the PDO mappings the master knows (machine/bus_budget.py counts their bits)
-MAPPINGS = ("full", "compact", "minimal")
-TPDO_ENTRIES = (
-    ((cia402.STATUSWORD, 0), (cia402.POSITION_ACTUAL, 0)),
-    ((cia402.VELOCITY_ACTUAL, 0), (cia402.TORQUE_ACTUAL, 0)),
-)
 
-
-@dataclass(frozen=True)
-class Identity:
-    """What 0x1018 must say (None: not checked)."""
-
-    vendor_id: int | None = None
-    product_code: int | None = None
-
-
-class SyncClock:
-    """The SYNC producer of one bus, shared by its axes; also the master's heartbeat producer
-    (node ``MASTER_NODE_ID``, every ``heartbeat_cycles`` SYNCs), which the drives consume (0x1016)."""
-
-    def __init__(self, network: canopen.Network, cob_id: int = SYNC_COB_ID, heartbeat_cycles: int = 100):
-        self.network = network
-        self.cob_id = cob_id
-        self.cycle = 0
-        self.heartbeat_cycles = heartbeat_cycles
-
-    def tick(self) -> None:
-        self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
-        self.network.send_message(self.cob_id, b"")
-        # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
-        # that died before its first one would leave the drive unwatched
-        if self.heartbeat_cycles and self.cycle % self.heartbeat_cycles == 1:
-            self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
-
-
-class CanopenAxis:
+class CanopenAxis(AxisBoot, AxisStop):
     """One CiA 402 drive behind the Axis protocol."""
 
     def __init__(
@@ -241,182 +199,6 @@ class CanopenAxis:
         #: :attr:`power` is the drive's own report of this cycle (TPDO) or of an SDO read since
         self.state_fresh = False
         self.state_source = ""  # "TPDO" or "SDO": where the last confirmed statusword came from
-
-    # -- boot and configuration (before the cycle runs) ------------------------------------------
-    def connect(self) -> None:
-        """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
-        self._boot()
-        # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
-        # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
-        # retries of canopen's client (0.3 s each) for this one exchange
-        sdo = self.node.sdo
-        retries = sdo.MAX_RETRIES
-        sdo.MAX_RETRIES = max(retries, 3)
-        try:
-            self._check_identity()
-        finally:
-            sdo.MAX_RETRIES = retries
-        self._configure()
-        for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
-            self.network.subscribe(cob, handler)
-        # heartbeat consumer on the master's side: the drive's heartbeat counts in bus cycles
-        self._last_heartbeat = self.clock.cycle
-        self.network.subscribe(HEARTBEAT_BASE + self.node_id, self._on_heartbeat)
-        # frames only the master sends: seen from someone else they are a fault of their own
-        for cob in self._watched_cobs:
-            self.network.subscribe(cob, self._on_foreign)
-        # in lockstep the START below is taken at once; across processes a heartbeat already under way may
-        # still say Pre-operational, so a change counts only after the drive has said Operational
-        self._foreign, self._foreign_seen, self._nmt_own = None, False, False
-        self._seen_operational = self.lockstep
-        # the state before the first SYNC, so that the first cycle already sends the right command
-        self.statusword = self._sdo(cia402.STATUSWORD)
-        self.power = cia402.decode_statusword(self.statusword)
-        self.state_fresh, self.state_source = True, "SDO"
-        self._controlword = self.master.controlword(self.power)
-        counts = self._sdo(cia402.POSITION_ACTUAL)
-        self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
-        if self.mapping != "full":
-            self._prev_counts = (counts, self.clock.cycle)
-        self._cw_sent = None  # the drive's 0x6040 after a (re)boot is not what we last sent
-        self.lost_cycles = 0
-        self._rebooted = False
-        self._consumed = self.clock.cycle
-        self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
-        self._connected = True
-
-    def _wait(self, event: threading.Event, what: str) -> None:
-        # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
-        # comes some tens of ms after the reset); otherwise wait for the notifier
-        if self.lockstep:
-            for _ in range(round(self.timeout / self.dt)):
-                if event.is_set():
-                    break
-                self.network.lockstep.advance(self.dt)
-        if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
-            raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
-
-    def _boot(self) -> None:
-        self._booted.clear()
-
-        def on_heartbeat(can_id: int, data: bytes, timestamp: float) -> None:
-            if data[:1] == b"\x00":
-                self._booted.set()
-
-        cob = HEARTBEAT_BASE + self.node_id
-        self.network.subscribe(cob, on_heartbeat)
-        try:
-            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, self.node_id]))
-            self._wait(self._booted, "boot-up message after NMT reset (is the drive powered, the node id right?)")
-        finally:
-            self.network.unsubscribe(cob, on_heartbeat)
-
-    def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
-        what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
-        if getattr(self, "_awaiting_boot", False):
-            # a reset we saw another master send: the drive answers once it has booted (tens of ms)
-            for _ in range(round(self.timeout / self.dt)):
-                if not self._awaiting_boot:
-                    break
-                if self.lockstep:
-                    self.network.lockstep.advance(self.dt)
-                else:
-                    time.sleep(self.dt)
-            self._awaiting_boot = False
-        if self._connected and self.heartbeat_state == NmtState.STOPPED:
-            # a Stopped drive answers no SDO (CiA 301): Pre-operational first (no PDO there either)
-            self._nmt_own = True
-            self._sent_stop = False
-            self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
-            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
-        try:
-            var = self.node.sdo[index] if sub is None else self.node.sdo[index][sub]
-            if value is None:
-                return var.raw
-            var.raw = value
-            return value
-        except canopen.SdoAbortedError as exc:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None
-        except canopen.SdoCommunicationError as exc:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}") from None
-        except KeyError:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: object {what} is not in the EDS") from None
-        except can.CanError as exc:
-            raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}", FaultKind.BUS_ERROR) from None
-
-    def _check_identity(self) -> None:
-        vendor = self._sdo(cia402.IDENTITY, 1)
-        product = self._sdo(cia402.IDENTITY, 2)
-        want = self.identity
-        if (want.vendor_id is not None and vendor != want.vendor_id) or (
-            want.product_code is not None and product != want.product_code
-        ):
-            raise AxisConfigError(
-                f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
-                f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
-            )
-
-    def _configure(self) -> None:
-        supported = self._sdo(cia402.SUPPORTED_DRIVE_MODES)
-        if not supported & cia402.supported_mode_bit(cia402.Mode.CYCLIC_SYNC_TORQUE):
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: drive does not support cyclic synchronous "
-                            f"torque (0x6502 = 0x{supported:08X})")
-        self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
-        self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
-        self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
-        if self.max_torque_permille is not None:
-            self._sdo(cia402.MAX_TORQUE, value=self.max_torque_permille)
-        # the drive watches the master's heartbeat (0x1016) and reacts per 0x6007 when it stops;
-        # allow three periods of the master's heartbeat before it counts as lost
-        master_ms = round(self.clock.heartbeat_cycles * self.dt * 1000)
-        if master_ms:
-            self._sdo(cia402.CONSUMER_HEARTBEAT_TIME, 1, value=(MASTER_NODE_ID << 16) | min(3 * master_ms, 0xFFFF))
-        try:
-            self._map_pdos()
-        except canopen.SdoAbortedError as exc:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
-        mode = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
-        if mode != cia402.Mode.CYCLIC_SYNC_TORQUE:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, "
-                                  "expected 10 (CST)")
-
-    def _map_pdos(self) -> None:
-        """The RPDOs and TPDOs of the mapping, every other PDO off (canopen's PdoMap writes)."""
-        node = self.node
-        node.rpdo.read()
-        node.tpdo.read()
-        for maps, wanted, base in ((node.rpdo, self._rpdo_entries, RPDO_BASE),
-                                   (node.tpdo, self._tpdo_entries, TPDO_BASE)):
-            for n, pdo in maps.map.items():
-                pdo.clear()
-                if n <= len(wanted):
-                    for index, sub in wanted[n - 1]:
-                        pdo.add_variable(index, sub)
-                    pdo.cob_id = base[n - 1] + self.node_id
-                    pdo.enabled = True
-                    if maps is node.rpdo and n == 2:
-                        pdo.trans_type = 255  # minimal's controlword: event-driven, taken on reception
-                    else:
-                        pdo.trans_type = 1  # synchronous, every SYNC
-                        if maps is node.rpdo and 5 in pdo.com_record.od:
-                            pdo.event_timer = self.rpdo_timeout_ms  # the drive's deadline on our cyclic RPDO
-                else:
-                    pdo.enabled = False
-                pdo.save()
-                if maps is node.tpdo and pdo.enabled:
-                    # save() subscribed canopen's own decoder (a lock and notify_all per frame); the
-                    # cycle decodes the TPDOs itself (_tpdo_callback): keep the per-cycle path one call
-                    if pdo.on_message in self.network.subscribers.get(pdo.cob_id, ()):
-                        self.network.unsubscribe(pdo.cob_id, pdo.on_message)
-
-    def read_back_mapping(self) -> dict[str, list[int]]:
-        """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
-        out = {}
-        for name, base, n in (("rpdo", cia402.RPDO_MAP, len(self._rpdo_entries)), ("tpdo", cia402.TPDO_MAP, 2)):
-            for i in range(n):
-                count = self._sdo(base + i, 0)
-                out[f"{name}{i + 1}"] = [self._sdo(base + i, s + 1) for s in range(count)]
-        return out
 
     # -- the cycle ---------------------------------------------------------------------------------
     def _tpdo_callback(self, i: int):
@@ -580,69 +362,6 @@ class CanopenAxis:
         self._controlword = self.master.controlword(self.power)
         return self.power
 
-    # -- stop escalation (driver/safe_stop.py decides when) ----------------------------------------
-    def sdo_quick_stop(self) -> None:
-        """Quick stop by SDO (0x6040 = Quick Stop), for a drive that does not take it by RPDO (outside
-        Operational, or a second RPDO producer overriding the master's). The RPDO says the same from now on."""
-        self._target(PowerState.QUICK_STOP_ACTIVE)
-        self._sdo(cia402.CONTROLWORD, value=int(cia402.Command.QUICK_STOP))
-        self._cw_sent = None  # the drive's 0x6040 is the SDO's now: the next cycle sends ours again
-
-    def abort_connection_option(self) -> int | None:
-        """0x6007 by SDO (None: not readable): 1 fault, 2 disable voltage, 3 quick stop on a lost connection."""
-        try:
-            return self._sdo(cia402.ABORT_CONNECTION_OPTION)
-        except AxisError:
-            return None
-
-    def nmt_stop(self) -> None:
-        """NMT Stop to this drive: it no longer takes any PDO (a rogue producer's neither) and, per its
-        0x6007, stops its power stage. The drive's reply comes by SDO after NMT Pre-operational
-        (:meth:`refresh_state_outside_operational`); a Stopped node need not answer SDO."""
-        self._nmt_own = True
-        self._sent_stop = True
-        self.network.send_message(NMT_COB_ID, bytes([NmtCommand.STOP, self.node_id]))
-
-    def refresh_state_outside_operational(self) -> PowerState:
-        """The statusword by SDO; if the drive is NMT Stopped and does not answer, NMT Pre-operational
-        first (SDO works there, PDOs still do not). Known Stopped (by our NMT Stop or its heartbeat): Pre-operational
-        at once (a conforming drive answers no SDO in Stopped, CiA 301; waiting for the SDO timeout costs 0.6 s)."""
-        if getattr(self, "_sent_stop", False):
-            self._sent_stop = False
-            self._nmt_own = True
-            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
-            return self.refresh_state()
-        try:
-            return self.refresh_state()
-        except AxisError:
-            self._nmt_own = True
-            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
-            return self.refresh_state()
-
-    def last_resort(self) -> str | None:
-        """The configured last resort (``last_resort``); returns what was done, None for "none"."""
-        if self.last_resort_action == "none":
-            return None
-        # NMT Reset Node: the drive restarts with its power stage off (and its configuration lost: connect()
-        # again before the next run); wait for its boot-up, then read the state it came back in
-        self._nmt_own = True
-        self._connected = False  # the boot-up that follows is ours, not a spontaneous reset
-        self._booted.clear()
-
-        def on_boot(can_id: int, data: bytes, timestamp: float) -> None:
-            if data[:1] == b"\x00":
-                self._booted.set()
-
-        cob = HEARTBEAT_BASE + self.node_id
-        self.network.subscribe(cob, on_boot)
-        try:
-            self.network.send_message(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, self.node_id]))
-            self._wait(self._booted, "boot-up message after NMT reset")
-        finally:
-            self.network.unsubscribe(cob, on_boot)
-        self.refresh_state()
-        return "NMT Reset Node"
-
     @property
     def counters(self) -> dict[str, int]:
         """Cycles bridged for lack of TPDOs, TPDO frames that came too late, and the frames the master
@@ -650,20 +369,6 @@ class CanopenAxis:
         return {"tpdo_lost_cycles": self.lost_total, "tpdo_late_frames": self.late_total,
                 "malformed_frames": self.frame_guard.count(self.node_id) + self.frame_guard.count(0)}
 
-    def drive_limits(self) -> dict[str, object]:
-        """The limits the drive holds (0x6065/0x6066 following error, 0x607D software position limits),
-        in SI; a window of 0xFFFFFFFF, and position limits that are equal or span all of int32, mean "none"."""
-        enc = self.encoder
-        out: dict[str, object] = {}
-        window = self._sdo(cia402.FOLLOWING_ERROR_WINDOW)
-        if window != 0xFFFFFFFF:
-            out["following_error"] = enc.from_counts(window)
-            out["following_time"] = self._sdo(cia402.FOLLOWING_ERROR_TIMEOUT) / 1000.0
-        lo, hi = self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 1), self._sdo(cia402.SOFTWARE_POSITION_LIMIT, 2)
-        if lo < hi and (lo, hi) != (-0x80000000, 0x7FFFFFFF):  # the whole int32 range: no limits set
-            out["position"] = (enc.from_counts(lo), enc.from_counts(hi))
-            out["position_source"] = f"node {self.node_id}: 0x607D software position limit"
-        return out
 
     def write(self, effort: float) -> None:
         try:

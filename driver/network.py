@@ -1,10 +1,12 @@
 """CAN buses and canopen networks: opened by python-can's own interface names, pumped in lockstep.
 
-``virtual`` (python-can's in-process bus) runs in lockstep: every frame a network sends is
-delivered, on the sending thread, to every network of the same :class:`Lockstep` until the bus is
-quiet; a reply (an SDO response, the TPDOs answering a SYNC) is therefore already received when the
-send returns. No notifier thread, so the order of frames never depends on timing and the same run
-gives the same trace bit for bit. Other interfaces (slcan, socketcand, socketcan) cross a process
+``virtual`` (the in-process bus) runs in lockstep: every frame a network sends is delivered, on the
+sending thread, to every network of the same :class:`Lockstep` until the bus is quiet; a reply (an SDO
+response, the TPDOs answering a SYNC) is therefore already received when the send returns. No
+notifier thread, so the order of frames never depends on timing and the same run gives the same trace
+bit for bit. Unpaced, the networks' buses are the Lockstep's own (:meth:`Lockstep.bus`,
+driver/lockstep_bus.py: frames handed over without copies); a run paced on the wall clock keeps
+python-can's virtual bus (:func:`open_bus`). Other interfaces (slcan, socketcand, socketcan) cross a process
 boundary: their networks are driven by a python-can Notifier as usual.
 """
 
@@ -22,6 +24,7 @@ import canopen
 
 from drivectl.driver.axis import AxisConfigError
 from drivectl.driver.frame_guard import FrameGuard
+from drivectl.driver.lockstep_bus import LockstepBus, LockstepLink
 from drivectl.driver.socketcand_client import SocketcandClientBus, probe_socketcand
 
 log = logging.getLogger("drivectl.frames")
@@ -148,6 +151,15 @@ class Lockstep:
         #: the devices' wall clocks (an emulated drive's ``wall_clock(now)``), served while a run is paced
         self.wall_clocks: list[Callable[[float | None], None]] = []
         self._wall: Callable[[], float] | None = None
+        self._links: dict[str, LockstepLink] = {}
+
+    def bus(self, channel: str) -> LockstepBus:
+        """A new end of this lockstep's in-process bus ``channel`` (driver/lockstep_bus.py): the ends
+        of one channel receive each other's frames, the same Message objects, without copies."""
+        link = self._links.get(channel)
+        if link is None:
+            link = self._links[channel] = LockstepLink(channel)
+        return link.open()
 
     def pace(self, wall: Callable[[], float] | None) -> None:
         """A run paced on the wall clock ``wall`` starts (None: it ended). While it lasts the devices run on
@@ -186,11 +198,13 @@ class Lockstep:
             self._settling = False
 
     def _deliver(self) -> None:
+        networks = self.networks
         busy = True
         while busy:
             busy = False
-            for net in self.networks:
-                if net.pump():
+            for net in networks:
+                pending = net._pending  # a lockstep bus with nothing waiting is skipped without a call
+                if (pending is None or pending()) and net.pump():
                     busy = True
 
     def _serve_wall(self, wall: Callable[[], float]) -> None:
@@ -199,20 +213,48 @@ class Lockstep:
             clock(now)
 
 
+#: canopen's NodeScanner records the node of these services (canopen/network.py NodeScanner.SERVICES)
+_SCANNED = frozenset(canopen.network.NodeScanner.SERVICES)
+
+
 class LockstepNetwork(canopen.Network):
-    """A canopen Network without a notifier thread: frames are pumped by :class:`Lockstep`."""
+    """A canopen Network without a notifier thread: frames are pumped by :class:`Lockstep`.
+
+    Dispatch per COB-ID: once a subscribed COB-ID has gone through canopen's ``notify``, its frames go
+    straight to canopen's own subscriber list for it (the live list, never a copy: a callback that
+    subscribes or unsubscribes another on the same COB-ID mid-run is seen on the very next frame, as
+    canopen sees it), then to the node scanner where canopen would call it. ``subscribe`` and
+    ``unsubscribe`` drop the entry, so a list canopen replaces is looked up again."""
 
     def __init__(self, bus: can.BusABC, lockstep: Lockstep):
+        #: COB-ID -> (canopen's live callback list for it, whether its node scanner looks at it); before
+        #: canopen's constructor, which subscribes already
+        self._dispatch: dict[int, tuple[list[Any], bool]] = {}
         super().__init__(bus)
         self.lockstep = lockstep
         lockstep.networks.append(self)
         self._recv = bus.recv
+        #: a lockstep bus's peek (None on other buses: always polled, e.g. a FaultyBus that raises on receive)
+        self._pending = bus.pending if isinstance(bus, LockstepBus) else None
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
         #: every received frame is checked before canopen's dispatch (driver/frame_guard.py); None on an
         #: emulated drive's network (the drive checks its frames itself, with CiA 301's EMCY reactions)
         self.frame_guard: FrameGuard | None = FrameGuard()
         self.handler_errors = 0
+
+    def subscribe(self, can_id: int, callback: Any) -> None:
+        super().subscribe(can_id, callback)
+        self._dispatch.pop(can_id, None)
+
+    def unsubscribe(self, can_id: int, callback: Any = None) -> None:
+        self._dispatch.pop(can_id, None)
+        super().unsubscribe(can_id, callback)
+
+    def _learn(self, can_id: int) -> None:
+        callbacks = self.subscribers.get(can_id)
+        if callbacks is not None:
+            self._dispatch[can_id] = (callbacks, can_id & 0x7F != 0 and can_id & 0x780 in _SCANNED)
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
@@ -225,10 +267,12 @@ class LockstepNetwork(canopen.Network):
 
     def pump(self) -> bool:
         """Deliver the frames waiting on this network's bus; True if there were any. A bus that raises
-        on receive keeps the error for its own next send (another node's send must not fail for it)."""
+        on receive keeps the error for its own next send (another node's send must not fail for it).
+        :meth:`Lockstep._deliver` calls it only when the bus has frames waiting (or cannot tell)."""
         got = False
         recv = self._recv
         notify = self.notify
+        dispatch = self._dispatch
         log = self.log
         while True:
             try:
@@ -247,8 +291,18 @@ class LockstepNetwork(canopen.Network):
                 deliver_remote(self, msg.arbitration_id)  # an emulated drive's RTR handler, never as data
             elif not msg.is_error_frame and (guard is None or guard.accept(msg.arbitration_id, msg.data,
                                                                            msg.is_remote_frame)):
+                can_id = msg.arbitration_id
                 try:
-                    notify(msg.arbitration_id, msg.data, msg.timestamp)
+                    route = dispatch.get(can_id)
+                    if route is None:
+                        notify(can_id, msg.data, msg.timestamp)
+                        self._learn(can_id)
+                    else:  # what canopen's notify does, without looking the COB-ID up again
+                        data, timestamp = msg.data, msg.timestamp
+                        for callback in route[0]:
+                            callback(can_id, data, timestamp)
+                        if route[1]:
+                            self.scanner.on_message_received(can_id)
                 except Exception as exc:  # noqa: BLE001 - as canopen's MessageListener: one frame's handler
                     # must not end the pump (in lockstep that would be the sender's cycle); counted, logged
                     self.handler_errors += 1

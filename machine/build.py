@@ -174,10 +174,13 @@ def open_machine(
     seed: int = 0,
     bus_log: str | None = None,
     faults: Sequence[FaultSpec] | None = None,
+    paced: bool = False,
 ) -> Machine:
     """The axes ``names`` of ``cfg``, each starting at ``start[name]`` (m); ``bus_log`` records every
     frame to a file (python-can Logger, format by suffix); ``faults`` arms fault injection (a spec
-    without an axis goes to the first axis)."""
+    without an axis goes to the first axis). On the virtual bus the drives and masters share the
+    lockstep's own bus (driver/lockstep_bus.py); ``paced`` (a run on the wall clock) keeps python-can's
+    virtual bus instead."""
     if faults is not None and (sim or cfg.bus.interface != "virtual"):
         raise FaultSpecError("--fault: faults are injected into the emulated drives of the virtual bus (not with "
                              "--sim or another bus; across processes use drivectl emulate --fault)")
@@ -208,9 +211,9 @@ def open_machine(
     lockstep = Lockstep()
     channel = unique_virtual_channel(cfg.bus.channel)
     machine = Machine({}, specs, f"virtual:{channel} (emulated CiA 402 drives, lockstep)")
-    emu_net = LockstepNetwork(open_bus("virtual", channel), lockstep)
+    emu_net = LockstepNetwork(_lockstep_end(lockstep, channel, paced), lockstep)
     machine._closers.append(emu_net.disconnect)
-    master_bus = open_bus("virtual", channel)
+    master_bus = _lockstep_end(lockstep, channel, paced)
     if faults is not None:
         master_bus = machine.master_bus = FaultyBus(master_bus)
     master_net = LockstepNetwork(master_bus, lockstep)
@@ -236,6 +239,12 @@ def open_machine(
         machine.close()
         raise
     return machine
+
+
+def _lockstep_end(lockstep: Lockstep, channel: str, paced: bool) -> Any:
+    """One end of the in-process bus: the lockstep's own (frames without copies), or python-can's virtual
+    bus for a run paced on the wall clock."""
+    return open_bus("virtual", channel) if paced else lockstep.bus(channel)
 
 
 def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
@@ -320,8 +329,8 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
     if b.interface == "virtual":
         lockstep = Lockstep()
         channel = unique_virtual_channel(b.channel)
-        emu = LockstepNetwork(open_bus("virtual", channel), lockstep)
-        master = LockstepNetwork(open_bus("virtual", channel), lockstep)
+        emu = LockstepNetwork(lockstep.bus(channel), lockstep)
+        master = LockstepNetwork(lockstep.bus(channel), lockstep)
         session = BusSession(master, f"virtual:{channel} (emulated drives)", {}, True,
                              [emu.disconnect, master.disconnect])
         session.watch_nmt()

@@ -388,6 +388,10 @@ class Plant:
             if self._gap > 0:
                 self._mats[(False, *dirs)] = self._matrices(engaged=False, dirs=dirs)
         self.A, self.B = self._mats[(True, 1, 1)]
+        #: one body: (a00, a01, a10, a11, b0, b1) of a substep per direction of motion (the hot path's view)
+        self._one_coefs = {} if self.n_bodies != 1 else {
+            dirs[0]: (A[0][0], A[0][1], A[1][0], A[1][1], B[0][0], B[1][0])
+            for (engaged, *dirs), (A, B) in self._mats.items() if engaged and dirs[1] == 1}
         # delay: split into whole cycles and a fraction, looked up per substep
         d = design.input_delay / self.dt
         self._delay_cycles = int(math.floor(d + 1e-9))
@@ -499,37 +503,47 @@ class Plant:
         return fc
 
     def _step_one(self, state: PlantState, effort: float) -> None:
-        (a00, a01), (a10, a11) = self.A
-        b0 = self.B[0][0]
-        b1 = self.B[1][0]
-        asym = self._asym
+        # the per-cycle path of every emulated axis: everything that holds for the cycle is read once,
+        # and each substep is the same arithmetic, operation for operation, as tools/explain/sim.py's
         x, v = state.s
         h = self.h
         t = state.t
-        has_forces = bool(self.design.periodic) or self.design.table_offset != 0.0
+        design = self.design
+        has_forces = bool(design.periodic) or design.table_offset != 0.0
         delayed = bool(self._history_len)
+        dist_a = self._dist_a
+        asym = self._asym
+        coefs = self._one_coefs
+        a00, a01, a10, a11, b0, b1 = coefs[1]
+        coulomb = self._coulomb[0]
+        body = self.bodies[0]
+        fc_pos, fc_neg = body.fc_pos, body.fc_neg
+        excess = body.stribeck_excess
         f_in = self._input(state, effort, 0)
         for i in range(self.substeps):
             f = self._input(state, effort, i) if delayed else f_in
             if has_forces:
                 f += self._table_force(t + (i + 0.5) * h, x + 0.5 * h * v, v)
-            if self._dist_a:
-                f += self._dist_a * math.sin(self._dist_w * (t + (i + 0.5) * h))
+            if dist_a:
+                f += dist_a * math.sin(self._dist_w * (t + (i + 0.5) * h))
             if asym:
                 # direction of motion in this substep: of the velocity, or of the force from rest
-                direction = 1 if (v > 0.0 or (v == 0.0 and f >= 0.0)) else -1
-                A, B = self._mats[(True, direction, 1)]
-                (a00, a01), (a10, a11) = A
-                b0, b1 = B[0][0], B[1][0]
+                a00, a01, a10, a11, b0, b1 = coefs[1 if (v > 0.0 or (v == 0.0 and f >= 0.0)) else -1]
             xf = a00 * x + a01 * v + b0 * f
             vf = a10 * x + a11 * v + b1 * f
-            if self._coulomb[0]:
+            if coulomb:
                 # Moreau: friction opposes the end-of-substep velocity, impulse limited to fc h
+                # (the Coulomb + Stribeck level of _coulomb_limit, written out)
                 if vf == 0.0:
                     lam = 0.0
                 else:
-                    direction = 1.0 if vf > 0.0 else -1.0
-                    stick_limit = self._coulomb_limit(0, v, direction)
+                    if vf > 0.0:
+                        direction, stick_limit = 1.0, fc_pos
+                    else:
+                        direction, stick_limit = -1.0, fc_neg
+                    if excess:
+                        r = v / body.stribeck_velocity
+                        stick_limit += excess * math.exp(-r * r)
                     if abs(vf) <= b1 * stick_limit:
                         lam = -vf / b1  # holding force: the body stops (or stays) at v = 0
                     else:

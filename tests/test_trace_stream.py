@@ -248,3 +248,49 @@ def test_write_trace_gives_a_new_file_per_call(tmp_path):
     back = Trace.read(b)
     assert back.meta["trace_complete"] == "true" and len(back) == len(tr)
     np.testing.assert_array_equal(back.pos, tr.pos)
+
+
+def test_inline_writer_writes_full_blocks_and_late_rows_on_the_loops_thread(tmp_path):
+    """Unpaced runs (inline=True): a full block is on disk when the append that filled it returns, and
+    the rows so far are flushed by the loop once flush_s of wall time passed since the last flush."""
+    w = _writer(tmp_path, block_rows=256, inline=True)
+    _rows(w, 3 * 256 + 10)
+    assert w._flushed >= 3 * 256  # written by the appends themselves, no flush() asked
+    assert len(Trace.read(w.partial)) >= 3 * 256
+    w._last_flush -= 1.0  # as if the loop had run 1 s of wall time since
+    _rows(w, TraceWriter.INLINE_CHECK_ROWS, 3 * 256 + 10)
+    assert 3 * 256 + 10 < w._flushed <= w.rows  # past the last full block: flushed by the clock rule
+    path = w.close({"stop": "completed"})
+    tr = Trace.read(path)
+    np.testing.assert_allclose(tr.columns["effort"], 0.5 * np.arange(w.rows), atol=1e-6)
+
+
+KILLED_INLINE = textwrap.dedent("""
+    import sys, time
+    from drivectl.tracefile.stream import TraceWriter
+    w = TraceWriter(sys.argv[1], "x", columns=("time_s", "ref_m", "pos_m", "effort"),
+                    meta={"axis": "x", "dt_s": 0.001, "effort_unit": "N"}, block_rows=256, inline=True).start()
+    for k in range(3000):
+        w.append(k * 0.001, 0.0, 1e-6 * k, 1.0)
+    print(w._flushed, flush=True)  # the full blocks, written by the appends
+    deadline = time.monotonic() + 30
+    while w._flushed < w.rows and time.monotonic() < deadline:  # the loop idles: the thread flushes the rest
+        time.sleep(0.005)
+    print(w._flushed, flush=True)
+    time.sleep(60)
+""")
+
+
+def test_a_sigkilled_inline_writer_leaves_every_row_of_an_idle_loop(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_INLINE, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        by_loop = int(proc.stdout.readline())
+        by_thread = int(proc.stdout.readline())
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    assert by_loop >= 11 * 256 and by_thread == 3000
+    (partial,) = tmp_path.glob("x-*.csv.partial")
+    tr = Trace.read(partial)
+    assert len(tr) == 3000 and tr.meta["trace_complete"] == "false"
+    np.testing.assert_allclose(tr.pos, 1e-6 * np.arange(3000), atol=1e-12)

@@ -157,7 +157,7 @@ def read_inputs(machine: Any, axis: Any) -> int:
 def home(machine: Any, axis: Any) -> Any:
     """Home ``axis`` (an AxisControl) by its configuration; returns the finished homing's Move handle
     (lockstep: at once; wall clock: the homing runs in a helper thread, the handle ends when it does)."""
-    from drivectl.controllers.runtime.loop import Move
+    from drivectl.controllers.runtime.handles import Move
 
     cfg = machine.config.axis(axis.name).homing or HomingConfig()
     axis._require_enabled("home")
@@ -175,12 +175,12 @@ def home(machine: Any, axis: Any) -> Any:
             else:
                 _home_hard_stop(machine, axis, cfg)
             handle.settled = True
-            handle._end("done", rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
+            handle.finish("done", rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
         except Exception as exc:  # noqa: BLE001 - the handle carries it to whoever waits
-            from drivectl.controllers.runtime.loop import MotionFault
+            from drivectl.controllers.runtime.handles import MotionFault
 
             fault = getattr(exc, "fault", None)
-            handle._end("fault", rt, str(exc), fault if fault is not None else None)
+            handle.finish("fault", rt, str(exc), fault if fault is not None else None)
             handle.error = exc  # type: ignore[attr-defined]
             if not isinstance(exc, MotionFault | HomingError):
                 raise
@@ -234,7 +234,7 @@ def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float,
             return pos
         if jog.done or rt.state.value != "servo":
             if rt.fault is not None:
-                from drivectl.controllers.runtime.loop import MotionFault
+                from drivectl.controllers.runtime.handles import MotionFault
 
                 raise MotionFault(f"axis {axis.name}: homing: {rt.fault.detail}", rt.fault)
             raise HomingError(f"axis {axis.name}: homing: {what} not found within {travel * 1e3:g} mm of "
@@ -278,7 +278,7 @@ def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
         def hold() -> None:  # the reference back to where the axis stands: the push ends
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h._end("stopped", rt, "hard stop found")
+                h.finish("stopped", rt, "hard stop found")
             rt.jog_until = 0
             rt.traj.hold(rt.position)
             rt.ch.controller.reset()

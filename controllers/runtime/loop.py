@@ -23,7 +23,7 @@ Two clocks, chosen when the loop is made:
   commands give the same trace bit for bit (tests, CI on the emulated drives).
 
 A fault on any axis (a drive fault, lost TPDOs, a limit, a stall) quick-stops every axis of the loop
-(``_safe_stop``: verified from the drives' reports), fails the handles of the moves under way with
+(``stop_channels``: verified from the drives' reports), fails the handles of the moves under way with
 that fault, and completes every capture armed on the fault trigger (the ring's last samples, written
 to ``fault_dir`` as a trace v1: the last seconds before any fault are on disk).
 
@@ -45,34 +45,31 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, Ring, Trigger
-from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
-from drivectl.controllers.runtime.servo import (
+from drivectl.controllers.runtime.cycle import (
     SAFE_STATES,
-    STATE_CHANGE_CYCLES,
     Channel,
     CycleFault,
     Fault,
     Limits,
-    Pacer,
     StopReason,
-    _pace_axes,
-    _safe_stop,
     check_and_write,
     control,
     sample_axis,
 )
+from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
+from drivectl.controllers.runtime.host import release_gc, release_switch, take_gc, take_switch
+from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
+from drivectl.controllers.runtime.pacing import Pacer, pace_axes
+from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
+from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
-from drivectl.profiles.base import Reference
 
 CLOCKS = ("lockstep", "wall")
 
@@ -82,122 +79,6 @@ class AxisState(Enum):
     ENABLING = "enabling"  # asked to enable; servoing from the cycle the drive reports Operation Enabled
     SERVO = "servo"  # enabled, its loop closed every cycle
 
-
-class MotionFault(RuntimeError):
-    """A move ended in a fault; ``fault`` says which (kind, axis, cycle, statusword, 0x603F, safe state)."""
-
-    def __init__(self, message: str, fault: Fault | None):
-        super().__init__(message)
-        self.fault = fault
-
-
-class Move:
-    """A handle on a command given to the loop (move, jog, stop, home, run): ``wait()`` for its end.
-
-    ``status``: pending (not yet taken by the loop), moving, settling (the reference arrived, the axis
-    is getting into position), done, stopped (replaced by another command, stopped, or the axis
-    disabled), fault. After the end: ``position`` and ``following_error`` (m) at the end, ``settled``
-    (in position within the window), ``cycles`` it took, ``trace`` (a run's record)."""
-
-    def __init__(self, loop: ServoLoop, axis: str, kind: str, target: float | None = None):
-        self.loop = loop
-        self.axis = axis
-        self.kind = kind
-        self.target = target
-        self.status = "pending"
-        self.detail = ""
-        self.fault: Fault | None = None
-        self.position: float | None = None
-        self.following_error: float | None = None
-        self.settled = False
-        self.cycles = 0
-        self._run: ProfileRun | None = None  # a run's record, once it ended
-        self._trace_fn: Callable[[Move], Any] | None = None
-        self._trace: Any = None
-        self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
-        self.path: Path | None = None  # where a streamed run's trace was written
-        self.record_error = ""
-        #: what the loop starts when this ends done (a run after its approach move)
-        self._then: Callable[[], None] | None = None
-        self._done = threading.Event()
-        self._in_position = 0
-        self._settle_cycles = 0
-
-    @property
-    def done(self) -> bool:
-        return self._done.is_set()
-
-    def _end(self, status: str, rt: AxisRuntime | None = None, detail: str = "", fault: Fault | None = None) -> None:
-        if self._done.is_set():
-            return
-        self.status, self.detail, self.fault = status, detail, fault
-        if rt is not None:
-            self.position = rt.position
-            self.following_error = rt.following_error
-        self._done.set()
-
-    @property
-    def trace(self) -> Any:
-        """A run's record (trace v1), once it ended; None for other commands."""
-        if self._trace is None and self._run is not None and self._trace_fn is not None:
-            self._trace = self._trace_fn(self)
-        return self._trace
-
-    def wait(self, timeout: float | None = None) -> Move:
-        """Block until the command ended (lockstep: run the cycles, ``timeout`` in simulated s; wall:
-        ``timeout`` in s of the wall clock). Raises :class:`MotionFault` when it ended in a fault,
-        TimeoutError when it has not ended within ``timeout``."""
-        if not self.loop.wait_until(self._done.is_set, timeout):
-            if self.loop.error is not None:
-                raise AxisError(f"axis {self.axis}: {self.kind}: the servo loop ended ({self.loop.error!r}); the "
-                                "drives' own watchdogs stop the axes")
-            within = f"within {timeout:g} s" if timeout is not None else "while waiting"
-            raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
-        self._close_record()
-        if self.status == "fault":
-            raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
-        return self
-
-    def _close_record(self) -> None:
-        """A streamed run's file: closed (trailer, rename) on the waiting side, never in the cycle."""
-        writer, self._writer = self._writer, None
-        if writer is None:
-            return
-        trailer = {"stop": self.status, "cycles": str(self._run.k if self._run else 0)}
-        if self.detail:
-            trailer["stop_detail"] = self.detail
-        if self.fault is not None:
-            trailer.update(self.fault.meta())
-        try:
-            self.path = writer.close(trailer)
-        except Exception as exc:  # noqa: BLE001 - the run's end is reported all the same
-            self.record_error = str(exc)
-
-    def __repr__(self) -> str:
-        where = f" at {self.position * 1e3:.6f} mm" if self.position is not None else ""
-        return f"<Move {self.kind} axis {self.axis}: {self.status}{where}>"
-
-
-@dataclass
-class ProfileRun:
-    """A profile being run on one axis: its samples, indexed per cycle; recorded into ``rec``."""
-
-    refs: list[list[float]]  # r, r', r'', r''' per cycle (offset applied)
-    n: int
-    k: int = 0
-    rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
-    #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
-    append: Callable[..., None] | None = None
-
-    def __post_init__(self) -> None:
-        self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
-
-    def next(self) -> Reference:
-        k = self.k if self.k < self.n else self.n - 1
-        pr, vr, ar, jr = self.refs
-        if self.k >= self.n:
-            return Reference(pr[k])
-        return Reference(pr[k], vr[k], ar[k], jr[k])
 
 
 class AxisRuntime:
@@ -258,7 +139,7 @@ class ServoLoop:
         self.stall_s = stall_s
         self.fault_dir = Path(fault_dir) if fault_dir is not None else None
         self.gc_control = gc_control
-        #: shorten the interpreter's switch interval while the wall-clock loop runs (see _take_switch)
+        #: shorten the interpreter's switch interval while the wall-clock loop runs (controllers/runtime/host.py)
         self.gil_switch = gil_switch
         self._switch_taken = False
         self.cpu = cpu
@@ -323,7 +204,7 @@ class ServoLoop:
         try:
             if self._thread is None or self.running:
                 for rt in self._rts:
-                    self.submit(lambda rt=rt: self._disable(rt, "the machine closed"))
+                    self.submit(lambda rt=rt: self.disable_axis(rt, "the machine closed"))
                 self.run_until(lambda: all(rt.ch.axis.power not in _ENABLED for rt in self._rts),
                                timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
         finally:
@@ -339,17 +220,17 @@ class ServoLoop:
                 rt.captures.clear()
             self.flush()
             if self._gc_taken:
-                _release_gc()
+                release_gc()
                 self._gc_taken = False
             if self._switch_taken:
-                _release_switch()
+                release_switch()
                 self._switch_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
             axis = rt.ch.axis
             if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
-                _quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
             states[rt.name] = axis.power.value
         return states
 
@@ -523,7 +404,7 @@ class ServoLoop:
         if h.kind == "jog":
             if rt.traj.arrived:  # stopped by the dead man or stop()
                 rt.handle = None
-                h._end("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
+                h.finish("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
             return
         if not rt.traj.arrived:
             return
@@ -540,7 +421,7 @@ class ServoLoop:
             return
         rt.handle = None
         then, h._then = h._then, None
-        h._end("done", rt, "" if h.settled else
+        h.finish("done", rt, "" if h.settled else
                f"not within {m.in_position * 1e6:g} um of the target {m.settle_timeout:g} s after the reference "
                f"arrived (error {(rt.traj.target - rt.position) * 1e6:+.2f} um)")
         if then is not None:
@@ -571,7 +452,7 @@ class ServoLoop:
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:
-            _safe_stop(self._channels, fault)
+            stop_channels(self._channels, fault)
         except Exception as exc:  # noqa: BLE001 - the stop must not kill the loop; say so in the fault
             fault.detail += f"; the stop itself failed: {exc}"
         self.faults.append(fault)
@@ -584,7 +465,7 @@ class ServoLoop:
                 rt.fault = fault
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h._end("fault", rt, fault.detail, fault)
+                h.finish("fault", rt, fault.detail, fault)
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
@@ -605,7 +486,7 @@ class ServoLoop:
             except OSError as exc:
                 cap.detail += f"; not written: {exc}"
 
-    def _disable(self, rt: AxisRuntime, why: str) -> None:
+    def disable_axis(self, rt: AxisRuntime, why: str) -> None:
         """Torque off (the drive ramps per its options); a move under way ends as stopped."""
         rt.ch.axis.disable()
         rt.state = AxisState.OFF
@@ -613,7 +494,7 @@ class ServoLoop:
         rt.jog_until = 0
         if rt.handle is not None:
             h, rt.handle = rt.handle, None
-            h._end("stopped", rt, why)
+            h.finish("stopped", rt, why)
 
     # -- wall clock -------------------------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -623,8 +504,8 @@ class ServoLoop:
             now = self._now
             pacer = Pacer(self.dt, now=now)
             # in-process, the emulated drives run on this clock too, as across processes: a loop later than
-            # the drive's RPDO deadline is caught by the drive (controllers/servo._pace_axes)
-            _pace_axes(self._channels, pacer.now)
+            # the drive's RPDO deadline is caught by the drive (controllers/runtime/pacing.pace_axes)
+            pace_axes(self._channels, pacer.now)
             paced = True
             k = 0
             while not self._closing:
@@ -650,16 +531,16 @@ class ServoLoop:
             raise
         finally:
             if paced:
-                _pace_axes(self._channels, None)
+                pace_axes(self._channels, None)
 
     def _setup_thread(self) -> None:
         if self.gil_switch:
-            was = _take_switch(self.dt / 10)
+            was = take_switch(self.dt / 10)
             self._switch_taken = True
             self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
                                    "a thread beside the loop gives up the GIL within a tenth of a cycle")
         if self.gc_control:
-            _take_gc()
+            take_gc()
             self._gc_taken = True
             self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
         if self.cpu is not None and hasattr(os, "sched_setaffinity"):
@@ -712,8 +593,8 @@ class ServoLoop:
                 self._stalled = True
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
-                        _quietly(rt.ch.axis.quick_stop)
-                        _quietly(rt.ch.axis.write, 0.0)
+                        quietly(rt.ch.axis.quick_stop)
+                        quietly(rt.ch.axis.write, 0.0)
 
     # -- what the user's side reads ----------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -751,71 +632,12 @@ class ServoLoop:
 
 _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
 
-# the collector is the process's: the first wall-clock loop takes it, the last one gives it back
-_gc_lock = threading.Lock()
-_gc_holders = 0
-_gc_was_enabled = True
-
-
-def _take_gc() -> None:
-    global _gc_holders, _gc_was_enabled
-    with _gc_lock:
-        if _gc_holders == 0:
-            _gc_was_enabled = gc.isenabled()
-            gc.collect()
-            gc.freeze()  # what exists now is never scanned again: young collections stay short
-            gc.disable()
-        _gc_holders += 1
-
-
-def _release_gc() -> None:
-    global _gc_holders
-    with _gc_lock:
-        _gc_holders -= 1
-        if _gc_holders == 0:
-            gc.unfreeze()  # back to normal collection: what was frozen may be collected again
-            if _gc_was_enabled:
-                gc.enable()
-
-
-# the interpreter's switch interval is the process's too. Python hands the GIL to a waiting thread only
-# after the holder has run for this long (5 ms by default): a program plotting beside the loop would
-# hold the loop's thread off for up to five cycles. The first wall-clock loop shortens it, the last
-# one restores it.
-_switch_holders = 0
-_switch_was = 0.005
-
-
-def _take_switch(interval: float) -> float:
-    global _switch_holders, _switch_was
-    with _gc_lock:
-        if _switch_holders == 0:
-            _switch_was = sys.getswitchinterval()
-            sys.setswitchinterval(min(_switch_was, interval))
-        _switch_holders += 1
-        return _switch_was
-
-
-def _release_switch() -> None:
-    global _switch_holders
-    with _gc_lock:
-        _switch_holders -= 1
-        if _switch_holders == 0:
-            sys.setswitchinterval(_switch_was)
-
-
-def _quietly(fn: Callable[..., object], *args: object) -> object:
-    try:
-        return fn(*args)
-    except Exception:  # noqa: BLE001 - a stop from the watchdog goes on whatever one call raises
-        return None
-
 
 def drive_error(axis: Axis) -> tuple[int, str] | None:
     """The drive's 0x603F (code, text), read by SDO where the axis can, else its last EMCY."""
     code = None
     if hasattr(axis, "read_error_code"):
-        code = _quietly(axis.read_error_code)
+        code = quietly(axis.read_error_code)
     if code is None and getattr(axis, "last_emcy", None):
         code = axis.last_emcy[0]
     if code is None:

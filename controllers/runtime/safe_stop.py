@@ -26,9 +26,9 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from drivectl.controllers.runtime.servo import SAFE_STATES
+from drivectl.controllers.runtime.cycle import SAFE_STATES, Channel, Fault
 from drivectl.driver.axis import Axis, AxisError, FaultKind
-from drivectl.driver.cia402 import PowerState
+from drivectl.driver.cia402 import PowerState, error_text
 
 #: cycles a drive has to report a safe state after each step before the next one (a CiA 402 drive in
 #: cyclic synchronous torque takes a quick stop at the next SYNC)
@@ -74,7 +74,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
     stops = {ax.name: AxisStop(ax.name) for ax in axes}
     for ax in axes:
         _attempt(stops[ax.name], "quick stop by RPDO", ax.quick_stop)
-        _quietly(ax.write, 0.0)
+        quietly(ax.write, 0.0)
     cycle = 0
 
     def done(ax: Axis) -> bool:
@@ -117,7 +117,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
         mark(cycle)
     for ax in axes:
         if done(ax) and ax.power is not PowerState.FAULT:
-            _quietly(ax.disable)
+            quietly(ax.disable)
     for _ in range(SETTLE_CYCLES):
         if all(ax.power not in _STILL_CHANGING for ax in axes if done(ax)):
             break
@@ -134,13 +134,13 @@ def _sdo_quick_stop(st: AxisStop, ax: Axis) -> None:
 def _nmt_stop(st: AxisStop, ax: Axis, always: bool = False) -> None:
     if not hasattr(ax, "nmt_stop") or any(t.startswith("NMT Stop") for t in st.tried):
         return
-    option = ax.abort_connection_option() if not always else _quietly(ax.abort_connection_option)
+    option = ax.abort_connection_option() if not always else quietly(ax.abort_connection_option)
     if not always and option not in (1, 2, 3, None):
         st.tried.append(f"no NMT Stop (0x6007 = {option}: the drive would not stop on it)")
         return
     what = "NMT Stop" + (f" (0x6007 = {option})" if option is not None else " (0x6007 unreadable)")
     if _attempt(st, what, ax.nmt_stop):
-        _quietly(ax.refresh_state_outside_operational)
+        quietly(ax.refresh_state_outside_operational)
 
 
 def _last_resort(st: AxisStop, ax: Axis) -> None:
@@ -177,17 +177,40 @@ def _stop_cycle(axes: Sequence[Axis]) -> bool:
         except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
             pass
         if not getattr(axis, "state_fresh", True) and hasattr(axis, "refresh_state"):
-            if _quietly(axis.refresh_state) is not None:
+            if quietly(axis.refresh_state) is not None:
                 alive = True
-        _quietly(axis.write, 0.0)
+        quietly(axis.write, 0.0)
     return alive
 
 
-def _quietly(fn: Callable[..., object], *args: object) -> object:
+def quietly(fn: Callable[..., object], *args: object) -> object:
+    """``fn(*args)``, or None where it raised: a stop goes on whatever one call raises."""
     try:
         return fn(*args)
     except Exception:  # noqa: BLE001 - stopping goes on whatever one call raises
         return None
+
+
+def stop_channels(channels: Sequence[Channel], fault: Fault | None = None) -> None:
+    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
+    after it and escalated where it does not confirm (:func:`stop_axes`); the cycles to a confirmed safe
+    state and the state (or "may still be powered" and what was tried) go into ``fault``."""
+    axes = [ch.axis for ch in channels]
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
+    if fault is not None:
+        for ax in axes:
+            st = stops[ax.name]
+            fault.safe_after[ax.name] = st.confirmed_after
+            fault.safe_state[ax.name] = st.safe_state(ax)
+        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
+        if faulted is not None:
+            fault.statusword = getattr(faulted, "statusword", None)
+            code = quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None
+            if code is None and getattr(faulted, "last_emcy", None):
+                code = faulted.last_emcy[0]
+            fault.error_code = code
+            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+                fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 
 def end_state_line(safe_state: dict[str, str], safe_after: dict[str, int | None]) -> str:

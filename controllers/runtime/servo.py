@@ -1,4 +1,4 @@
-"""The servo cycle: profile -> controller -> axis, once per cycle, recorded as a trace.
+"""A run: profile -> controller -> axis, once per cycle, recorded as a trace (one axis's cycle: cycle.py).
 
 Lockstep: each ``axis.read()`` lets the axis advance exactly one cycle (a plant step in SimAxis, a
 SYNC on the bus), so the run takes as little wall time as the CPU allows and is deterministic.
@@ -21,31 +21,33 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable, Mapping, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
-from enum import Enum
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 
-from drivectl.controllers.base import Controller, Settings, SettingsError, param
+from drivectl.controllers.base import Controller
+from drivectl.controllers.runtime.cycle import (
+    SAFE_STATES,
+    Channel,
+    CycleFault,
+    Fault,
+    Limits,
+    StopReason,
+    check_and_write,
+    control,
+    sample_axis,
+)
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
-from drivectl.controllers.runtime.run_checks import JumpState, RunChecks, RunGuard, position_jump
-from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
-from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.controllers.runtime.pacing import Pacer, pace_axes
+from drivectl.controllers.runtime.recording import Recording, RunResult
+from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
+from drivectl.controllers.runtime.safe_stop import stop_channels
+from drivectl.driver.axis import Axis, AxisError, FaultKind
+from drivectl.driver.cia402 import PowerState
 from drivectl.errors import InputError
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
-from drivectl.tracefile.format import Trace, format_value
-
-
-class StopReason(Enum):
-    COMPLETED = "completed"
-    FOLLOWING_ERROR = "following error"
-    SOFT_LIMIT = "soft position limit"
-    INTERRUPTED = "interrupted"
-    FAULT = "fault"
-    AXIS_ERROR = "axis error"
 
 
 class LimitError(InputError):
@@ -70,103 +72,6 @@ def check_run_length(duration: float, dt: float, what: str = "run: duration", *,
         raise LimitError(f"{what}: {duration:g} s is {n} cycles of {dt * 1e3:g} ms, more than {how} "
                          f"({cap} cycles, {cap * dt:g} s); split it into shorter runs")
     return n
-
-
-@dataclass(frozen=True)
-class Limits(Settings):
-    """What an axis may do. Defaults allow everything but a following error beyond 5 mm."""
-
-    where: ClassVar[str] = "limits"
-
-    position: tuple[float, float] | None = None  # soft limits, m (0x607D)
-    max_effort: float = param(math.inf, lo=0.0, lo_open=True, finite=False,
-                              doc="the command is clipped to +-max_effort (inf: not limited)")
-    following_error: float = param(5e-3, lo=0.0, lo_open=True, unit="m", doc="window (0x6065)")
-    following_time: float = param(0.0, lo=0.0, unit="s", doc="the error may stay outside the window this long (0x6066)")
-    max_speed: float = param(2.0, lo=0.0, lo_open=True, unit="m/s",
-                             doc="a position step faster than this between two samples is implausible")
-    max_jump: float = param(5e-4, lo=0.0, lo_open=True, unit="m", doc="a second difference of the position beyond "
-                            "this is an encoder glitch (controllers/runtime/run_checks.py)")
-    #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
-    position_source: str | None = field(default=None, compare=False)
-
-    def validate(self, source: str = "limits", prefix: str = "") -> None:
-        if self.position is not None and not self.position[0] < self.position[1]:
-            raise SettingsError(f"{source}: {prefix}position: lower limit must be below upper, got {self.position}")
-        super().validate(source, prefix)
-
-
-#: power states with the torque off: where a stop must end
-SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT,
-               PowerState.FAULT_REACTION_ACTIVE)
-
-
-@dataclass
-class Fault:
-    """What ended a run other than completion, and how the axes came to rest."""
-
-    kind: str  # a FaultKind value, or "interrupted"
-    axis: str
-    cycle: int  # trace row of the detection
-    detail: str
-    statusword: int | None = None  # of the faulted axis, after the stop
-    error_code: int | None = None  # its 0x603F, after the stop (None: could not be read)
-    safe_after: dict[str, int | None] = field(default_factory=dict)  # cycles to a safe state (None: unknown)
-    safe_state: dict[str, str] = field(default_factory=dict)
-
-    def meta(self) -> dict[str, str]:
-        out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
-        if self.statusword is not None:
-            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
-            out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
-        out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
-                              else "unknown (0x603F could not be read)")
-        return out
-
-
-@dataclass
-class RunResult:
-    """One trace per axis and why the run ended."""
-
-    traces: dict[str, Trace]
-    stop: StopReason = StopReason.COMPLETED
-    detail: str = ""
-    cycles: int = 0
-    clipped: dict[str, int] = field(default_factory=dict)
-    fault: Fault | None = None
-    #: False when the run ended before any axis was asked to enable (nothing moved)
-    enabled: bool = True
-    #: the files the run streamed its traces to (``stream=``), per axis
-    paths: dict[str, Path] = field(default_factory=dict)
-    #: why a streamed trace could not be written whole (the run itself went on), per axis
-    stream_errors: dict[str, str] = field(default_factory=dict)
-
-    @property
-    def trace(self) -> Trace:
-        """The trace of a single-axis run."""
-        return next(iter(self.traces.values()))
-
-    @property
-    def ok(self) -> bool:
-        return self.stop is StopReason.COMPLETED
-
-
-@dataclass
-class Channel:
-    """One axis of a run: what it follows and what closes its loop."""
-
-    axis: Axis
-    controller: Controller
-    profile: Profile
-    limits: Limits = field(default_factory=Limits)
-    meta: Mapping[str, object] = field(default_factory=dict)
-    #: first cycle of the current excursion outside the following-error window
-    following_since: int | None = field(default=None, init=False, repr=False)
-    last_position: float | None = field(default=None, init=False, repr=False)
-    #: cycles whose command was clipped to max_effort (since the run or the enable began)
-    clipped: int = field(default=0, init=False, repr=False)
-    #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
-    jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
 
 def run(
@@ -280,9 +185,9 @@ def run_channels(
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
     Read top-down: :func:`plan_run` (checks, references; nothing moves), :func:`_bring_up` (enable),
-    :func:`_run_cycles` (the cycle: :func:`sample_axis` -> :func:`control` -> record ->
-    :func:`check_and_write` per axis), then the ending (:func:`_safe_stop` on a fault or an interrupt,
-    :func:`_disable_all` on completion) and :class:`Recording` turning the arrays into traces.
+    :func:`_run_cycles` (the cycle, controllers/runtime/cycle.py: :func:`sample_axis` -> :func:`control` ->
+    record -> :func:`check_and_write` per axis), then the ending (:func:`stop_channels` on a fault or an
+    interrupt, :func:`_disable_all` on completion) and :class:`Recording` turning the arrays into traces.
 
     ``channels`` may be a :class:`RunPlan` already made (``duration`` is then ignored).
     ``on_start(cycles)`` is called once the axes are enabled and the first cycle is recorded (an
@@ -316,10 +221,10 @@ def run_channels(
             ch.clipped = 0
         pacer = pace if isinstance(pace, Pacer) else Pacer(plan.dt) if pace else None
         if pacer is not None:
-            _pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
+            pace_axes(channels, pacer.now)  # in-process, the drives' clocks are the wall clock too
         guard = RunGuard(checks, plan.cycles, channels, pacer) if checks is not None else None
         signals = nullcontext(stop_request) if stop_request is not None else stop_on_signals()
-        with signals as request:
+        with signals as request, one_blas_thread():
             outcome = _run_cycles(plan, rec, request, pacer, on_start, progress, guard)
         if outcome.stop is StopReason.COMPLETED and disable_at_end:
             _disable_all(channels)
@@ -328,12 +233,21 @@ def run_channels(
         raise
     finally:
         if pace:
-            _pace_axes(channels, None)
+            pace_axes(channels, None)
     return rec.result(outcome, pacer)
 
 
+def one_blas_thread() -> AbstractContextManager[object]:
+    """A context in which BLAS (OpenBLAS under numpy) runs on the calling thread only: the cycle's
+    products are a few elements, and a BLAS worker left spinning after each burned about 10 us of CPU
+    per cycle on the other core. Process-wide while it lasts (threadpoolctl), restored after."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 @dataclass
-class _Outcome:
+class RunOutcome:
     """How the cycles ended (filled by :func:`_run_cycles`)."""
 
     stop: StopReason = StopReason.COMPLETED
@@ -344,13 +258,13 @@ class _Outcome:
 
 
 def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pacer | None,
-                on_start: Callable[[int], None] | None, progress: bool, guard: RunGuard | None = None) -> _Outcome:
+                on_start: Callable[[int], None] | None, progress: bool, guard: RunGuard | None = None) -> RunOutcome:
     """Bring the axes up and run the cycles; every way out ends here with the axes stopped."""
     channels, dt, n = plan.channels, plan.dt, plan.cycles
     if plan.base:
         plan.load(0)  # a plan run a second time
     refs, base = plan.refs, 0
-    out = _Outcome()
+    out = RunOutcome()
     bar = None
     k = 0
     try:
@@ -386,14 +300,14 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
         out.stop, out.fault = exc.stop, exc.fault
         if exc.recorded:
             out.cycles = k + 1
-        _safe_stop(channels, out.fault)
+        stop_channels(channels, out.fault)
         out.detail = out.fault.detail  # with the drive's own reason, read after the stop
     except (_Interrupted, KeyboardInterrupt):
         out.stop = StopReason.INTERRUPTED
         out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
         out.fault = Fault("interrupted", channels[0].axis.name, k, out.detail)
         if out.started:
-            _safe_stop(channels, out.fault)
+            stop_channels(channels, out.fault)
         else:
             out.detail += " before the axes were enabled"
             for ch in channels:
@@ -402,164 +316,11 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
     except AxisError as exc:  # raised by the bring-up or by a write
         out.stop, out.detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
         out.fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, out.detail)
-        _safe_stop(channels, out.fault)
+        stop_channels(channels, out.fault)
     finally:
         if bar is not None:
             bar.close()
     return out
-
-
-# -- one axis, one cycle (shared by run_channels and the resident loop, controllers/runtime/loop.py) ------------
-class CycleFault(Exception):
-    """A cycle found a reason to stop: a fault or a limit (``fault``), before or after the sample was
-    recorded (``recorded``)."""
-
-    def __init__(self, stop: StopReason, fault: Fault, recorded: bool):
-        super().__init__(fault.detail)
-        self.stop = stop
-        self.fault = fault
-        self.recorded = recorded
-
-
-def sample_axis(ch: Channel, k: int) -> Feedback:
-    """This cycle's sample of an axis that must be in Operation Enabled (else CycleFault)."""
-    try:
-        fb = ch.axis.read()
-    except AxisError as exc:
-        raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
-                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
-                         False) from None
-    if ch.axis.power is not PowerState.OPERATION_ENABLED:
-        raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
-    return fb
-
-
-def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
-    """The control law, clipped to the effort limit (clipped cycles counted)."""
-    u = ch.controller.step(ref, fb)
-    lim = ch.limits.max_effort
-    if u > lim or u < -lim:
-        ch.clipped += 1
-        return lim if u > 0 else -lim
-    return u
-
-
-def check_and_write(ch: Channel, k: int, dt: float, pos: float, ref: float, u: float) -> None:
-    """The limits (:func:`_violation`), then the setpoint out; CycleFault (recorded) on a violation."""
-    reason = _violation(ch, k, dt, pos, ref)
-    if reason is not None:
-        stop, kind, detail = reason
-        raise CycleFault(stop, Fault(kind.value, ch.axis.name, k, detail), True)
-    ch.axis.write(u)
-
-
-class Recording:
-    """Position, velocity and effort of every cycle of a run, preallocated; turned into one
-    :class:`~drivectl.tracefile.format.Trace` per axis at the end, and (``stream``) written as the run goes
-    through :class:`~drivectl.tracefile.stream.TraceWriter` (an append per cycle: no I/O in the cycle)."""
-
-    COLUMNS = ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")
-
-    def __init__(self, plan: RunPlan, stream: str | Path | None = None, paced: bool = False):
-        self.plan = plan
-        self.dt = plan.dt
-        if not plan.keep and stream is None:
-            raise ValueError("run: a plan made with keep=False records only by streaming: give stream=")
-        n = plan.cycles if plan.keep else 0
-        self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
-        self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
-        self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
-        self._head = [self._head_meta(ch, paced) for ch in plan.channels]
-        self.writers: list = []
-        if stream is not None:
-            from drivectl.tracefile.stream import TraceWriter
-
-            try:
-                for ch, head in zip(plan.channels, self._head, strict=True):
-                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head).start())
-            except BaseException:
-                self.abandon()
-                raise
-        self._append = [w.append for w in self.writers] if self.writers else None
-
-    def _head_meta(self, ch: Channel, paced: bool) -> dict[str, str]:
-        """What is known before the run: the header of a streamed trace."""
-        return {
-            "axis": ch.axis.name,
-            "effort_unit": ch.axis.effort_unit,
-            "dt_s": format_value(self.plan.dt),
-            **{k: format_value(v) for k, v in ch.controller.describe().items()},
-            **{k: format_value(v) for k, v in ch.meta.items()},
-            "clock": "wall clock, paced" if paced else "lockstep",
-        }
-
-    def record(self, i: int, k: int, fb: Feedback, u: float, ref: float) -> None:
-        if self._rows is not None:
-            r, pos, vel, eff = self._rows[i]
-            r[k] = ref
-            pos[k] = fb.position
-            vel[k] = fb.velocity
-            eff[k] = u
-        if self._append is not None:
-            self._append[i](k * self.dt, ref, fb.position, u, fb.velocity)
-
-    def abandon(self) -> None:
-        for w in self.writers:
-            try:
-                w.abandon()
-            except Exception:  # noqa: BLE001 - the others must still be closed
-                pass
-        self._append = None
-
-    def result(self, out: _Outcome, pacer: Pacer | None) -> RunResult:
-        plan, n = self.plan, out.cycles
-        pacing = {}
-        if pacer is not None and n:
-            pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
-                      "missed_fraction": format_value(pacer.missed / n),
-                      "worst_late_ms": format_value(pacer.worst_late * 1e3)}
-        traces = {}
-        paths: dict[str, Path] = {}
-        errors: dict[str, str] = {}
-        t = plan.t[:n] if plan.keep else None
-        for i, ch in enumerate(plan.channels):
-            head = self._head[i]
-            meta = {
-                **head,
-                "cycles": str(n),
-                "stop": out.stop.value,
-                **pacing,
-            }
-            if out.detail:
-                meta["stop_detail"] = out.detail
-            if ch.clipped:
-                meta["effort_clipped_cycles"] = str(ch.clipped)
-            for key, value in getattr(ch.axis, "counters", {}).items():
-                meta[key] = str(value - self._counters0[i].get(key, 0))
-            if out.fault is not None:
-                meta.update(out.fault.meta())
-                name = ch.axis.name
-                meta["safe_state"] = out.fault.safe_state.get(name, "unknown")
-                after = out.fault.safe_after.get(name)
-                meta["safe_after_cycles"] = "unknown" if after is None else str(after)
-            if plan.keep:
-                cols = {"time_s": t, **{k: v[:n] for k, v in self._cols[i].items()}}
-                traces[ch.axis.name] = Trace({k: cols[k] for k in self.COLUMNS}, meta)
-            if self.writers:
-                w = self.writers[i]
-                try:
-                    paths[ch.axis.name] = w.close({k: v for k, v in meta.items() if k not in head})
-                except Exception as exc:  # noqa: BLE001 - a write error must not lose the run's result
-                    errors[ch.axis.name] = str(exc)
-                if not plan.keep:  # the record is the file: read back (the rows it has, if it failed)
-                    try:
-                        tr = traces[ch.axis.name] = Trace.read(paths.get(ch.axis.name) or w.partial)
-                        if ch.axis.name in errors:  # cut short by the disk, not by the run: say how the run ended
-                            tr.meta.update({k: v for k, v in meta.items() if k != "cycles"})
-                    except Exception as exc:  # noqa: BLE001
-                        errors.setdefault(ch.axis.name, str(exc))
-        return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
-                         out.fault, out.started, paths, errors)
 
 
 def _disable_all(channels: Sequence[Channel]) -> None:
@@ -567,52 +328,6 @@ def _disable_all(channels: Sequence[Channel]) -> None:
     for ch in channels:
         ch.axis.disable()
     _cycle_until(channels, lambda ax: ax.power is not PowerState.OPERATION_ENABLED)
-
-
-class Pacer:
-    """Holds cycle k until t0 + k dt on the monotonic clock: sleep, then spin the last 300 us
-    (``time.sleep`` overshoots ~70 us here). A cycle that starts later than half a period after
-    its deadline counts as missed."""
-
-    SPIN_S = 300e-6
-
-    def __init__(self, dt: float, now: Callable[[], float] | None = None,
-                 sleep: Callable[[float], None] | None = None):
-        import time
-
-        self._now = now or time.perf_counter  # injectable: tests stall a master on a simulated clock
-        self._sleep = sleep or time.sleep
-        self.dt = dt
-        self.t0 = self._now()
-        self.missed = 0
-        self.worst_late = 0.0
-
-    def wait(self, k: int) -> None:
-        deadline = self.t0 + k * self.dt
-        now = self._now()
-        if deadline - now > self.SPIN_S:
-            self._sleep(deadline - now - self.SPIN_S)
-        while (now := self._now()) < deadline:
-            pass
-        late = now - deadline
-        if late > self.worst_late:
-            self.worst_late = late
-        if late > 0.5 * self.dt:
-            self.missed += 1
-
-
-    def now(self) -> float:
-        """The pacer's clock (the wall clock the in-process drives run on while the run is paced)."""
-        return self._now()
-
-
-def _pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None) -> None:
-    """Tell each axis that a paced run starts on ``wall`` (None: it ended); axes without drives of their
-    own clock in this process (SimAxis) have no ``pace``."""
-    for ch in channels:
-        pace = getattr(ch.axis, "pace", None)
-        if pace is not None:
-            pace(wall)
 
 
 class _Interrupted(Exception):
@@ -660,60 +375,9 @@ class _Shifted:
         return self._p.sample(np.asarray(t) + self._t0)
 
 
-def _left_operation(ch: Channel, k: int) -> Fault:
-    """The drive is no longer in Operation Enabled though the master keeps asking for it."""
-    axis = ch.axis
-    power = axis.power
-    if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
-        emcy = getattr(axis, "last_emcy", None)
-        code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
-        return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
-                     f"statusword 0x{getattr(axis, 'statusword', 0):04X}{code})")
-    return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
-                 f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
-
-
 def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
     text = str(exc)
     return next((ch.axis.name for ch in channels if text.startswith(f"axis {ch.axis.name}:")), channels[0].axis.name)
-
-
-def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, FaultKind, str] | None:
-    lim = ch.limits
-    name = ch.axis.name
-    last, ch.last_position = ch.last_position, pos
-    if last is not None and k and abs(pos - last) > lim.max_speed * dt:
-        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
-            f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
-            f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
-    if last is None:
-        ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
-    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
-    if jump is not None:
-        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
-            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
-            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
-            "violent oscillation)")
-    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
-        return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
-            f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
-    err = ref - pos
-    if err > lim.following_error or err < -lim.following_error:
-        since = ch.following_since
-        if since is None:
-            since = ch.following_since = k
-        if k == 0:
-            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
-                f"axis {name}: at {pos:.6f} m but the profile starts at {ref:.6f} m; nothing moved"
-            )
-        if (k - since) * dt >= lim.following_time:
-            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
-                f"axis {name}: following error {err * 1e6:.1f} um beyond the {lim.following_error * 1e6:.0f} um "
-                f"window at t={k * dt:.3f} s"
-            )
-    else:
-        ch.following_since = None
-    return None
 
 
 #: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
@@ -741,40 +405,16 @@ def _bring_up(channels: Sequence[Channel]) -> None:
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {STATE_CHANGE_CYCLES} cycles")
 
 
-def _safe_stop(channels: Sequence[Channel], fault: Fault | None = None) -> None:
-    """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
-    after it and escalated where it does not confirm (controllers/runtime/safe_stop.py); the cycles to a
-    confirmed safe state and the state (or "may still be powered" and what was tried) go into ``fault``."""
-    from drivectl.controllers.runtime.safe_stop import stop_axes
-
-    axes = [ch.axis for ch in channels]
-    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
-    if fault is not None:
-        for ax in axes:
-            st = stops[ax.name]
-            fault.safe_after[ax.name] = st.confirmed_after
-            fault.safe_state[ax.name] = st.safe_state(ax)
-        faulted = next((ax for ax in axes if ax.name == fault.axis), None)
-        if faulted is not None:
-            fault.statusword = getattr(faulted, "statusword", None)
-            code = _quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None
-            if code is None and getattr(faulted, "last_emcy", None):
-                code = faulted.last_emcy[0]
-            fault.error_code = code
-            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
-                fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
-
-
-def _quietly(fn: Callable[..., object], *args: object) -> object:
-    try:
-        return fn(*args)
-    except Exception:  # noqa: BLE001 - stopping goes on whatever one call raises
-        return None
-
-
 def _progress(n: int, enabled: bool):
     if not enabled:
         return None
     from tqdm import tqdm
 
     return tqdm(total=n, unit="cycle", unit_scale=True, leave=False, desc="trace")
+
+
+#: the run's vocabulary, importable from here as from its own modules (cycle, pacing, recording)
+__all__ = ["CHECK_WINDOW_S", "MAX_RUN_CYCLES", "MAX_STREAMED_CYCLES", "REF_CHUNK", "SAFE_STATES", "STATE_CHANGE_CYCLES",
+           "Channel", "CycleFault", "Fault", "LimitError", "Limits", "Pacer", "Recording", "RunOutcome", "RunPlan",
+           "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "plan_run", "run",
+           "run_channels", "run_preview", "sample_axis"]

@@ -263,7 +263,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                             faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
-                           bus_log=args.bus_log, faults=faults)
+                           bus_log=args.bus_log, faults=faults, paced=args.paced)
     channels = []
     try:
         for name in names:

@@ -1,0 +1,198 @@
+"""One axis, one cycle: sample -> control -> check and write, and the types that cycle speaks.
+
+Both a one-shot run (controllers/runtime/servo.py) and the resident loop (controllers/runtime/loop.py)
+close an axis's loop with the same three calls: :func:`sample_axis` (a fault if the drive left Operation
+Enabled), :func:`control` (the law, clipped to the effort limit) and :func:`check_and_write` (soft limits,
+following error, encoder plausibility, then the setpoint out). A reason to stop is raised as
+:class:`CycleFault` carrying a :class:`Fault`; the caller stops the axes (controllers/runtime/safe_stop.py).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import ClassVar
+
+from drivectl.controllers.base import Controller, Settings, SettingsError, param
+from drivectl.controllers.runtime.run_checks import JumpState, position_jump
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
+from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.profiles.base import Profile, Reference
+
+
+class StopReason(Enum):
+    COMPLETED = "completed"
+    FOLLOWING_ERROR = "following error"
+    SOFT_LIMIT = "soft position limit"
+    INTERRUPTED = "interrupted"
+    FAULT = "fault"
+    AXIS_ERROR = "axis error"
+
+
+
+@dataclass(frozen=True)
+class Limits(Settings):
+    """What an axis may do. Defaults allow everything but a following error beyond 5 mm."""
+
+    where: ClassVar[str] = "limits"
+
+    position: tuple[float, float] | None = None  # soft limits, m (0x607D)
+    max_effort: float = param(math.inf, lo=0.0, lo_open=True, finite=False,
+                              doc="the command is clipped to +-max_effort (inf: not limited)")
+    following_error: float = param(5e-3, lo=0.0, lo_open=True, unit="m", doc="window (0x6065)")
+    following_time: float = param(0.0, lo=0.0, unit="s", doc="the error may stay outside the window this long (0x6066)")
+    max_speed: float = param(2.0, lo=0.0, lo_open=True, unit="m/s",
+                             doc="a position step faster than this between two samples is implausible")
+    max_jump: float = param(5e-4, lo=0.0, lo_open=True, unit="m", doc="a second difference of the position beyond "
+                            "this is an encoder glitch (controllers/runtime/run_checks.py)")
+    #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
+    position_source: str | None = field(default=None, compare=False)
+
+    def validate(self, source: str = "limits", prefix: str = "") -> None:
+        if self.position is not None and not self.position[0] < self.position[1]:
+            raise SettingsError(f"{source}: {prefix}position: lower limit must be below upper, got {self.position}")
+        super().validate(source, prefix)
+
+
+
+#: power states with the torque off: where a stop must end
+SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT,
+               PowerState.FAULT_REACTION_ACTIVE)
+
+
+@dataclass
+class Fault:
+    """What ended a run other than completion, and how the axes came to rest."""
+
+    kind: str  # a FaultKind value, or "interrupted"
+    axis: str
+    cycle: int  # trace row of the detection
+    detail: str
+    statusword: int | None = None  # of the faulted axis, after the stop
+    error_code: int | None = None  # its 0x603F, after the stop (None: could not be read)
+    safe_after: dict[str, int | None] = field(default_factory=dict)  # cycles to a safe state (None: unknown)
+    safe_state: dict[str, str] = field(default_factory=dict)
+
+    def meta(self) -> dict[str, str]:
+        out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
+        if self.statusword is not None:
+            stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
+            out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
+        out["fault_error"] = (f"0x{self.error_code:04X}: {error_text(self.error_code)}" if self.error_code is not None
+                              else "unknown (0x603F could not be read)")
+        return out
+
+
+
+@dataclass
+class Channel:
+    """One axis of a run: what it follows and what closes its loop."""
+
+    axis: Axis
+    controller: Controller
+    profile: Profile
+    limits: Limits = field(default_factory=Limits)
+    meta: Mapping[str, object] = field(default_factory=dict)
+    #: first cycle of the current excursion outside the following-error window
+    following_since: int | None = field(default=None, init=False, repr=False)
+    last_position: float | None = field(default=None, init=False, repr=False)
+    #: cycles whose command was clipped to max_effort (since the run or the enable began)
+    clipped: int = field(default=0, init=False, repr=False)
+    #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
+    jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
+
+
+class CycleFault(Exception):
+    """A cycle found a reason to stop: a fault or a limit (``fault``), before or after the sample was
+    recorded (``recorded``)."""
+
+    def __init__(self, stop: StopReason, fault: Fault, recorded: bool):
+        super().__init__(fault.detail)
+        self.stop = stop
+        self.fault = fault
+        self.recorded = recorded
+
+
+def sample_axis(ch: Channel, k: int) -> Feedback:
+    """This cycle's sample of an axis that must be in Operation Enabled (else CycleFault)."""
+    try:
+        fb = ch.axis.read()
+    except AxisError as exc:
+        raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
+                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
+                         False) from None
+    if ch.axis.power is not PowerState.OPERATION_ENABLED:
+        raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
+    return fb
+
+
+def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
+    """The control law, clipped to the effort limit (clipped cycles counted)."""
+    u = ch.controller.step(ref, fb)
+    lim = ch.limits.max_effort
+    if u > lim or u < -lim:
+        ch.clipped += 1
+        return lim if u > 0 else -lim
+    return u
+
+
+def check_and_write(ch: Channel, k: int, dt: float, pos: float, ref: float, u: float) -> None:
+    """The limits (:func:`_violation`), then the setpoint out; CycleFault (recorded) on a violation."""
+    reason = _violation(ch, k, dt, pos, ref)
+    if reason is not None:
+        stop, kind, detail = reason
+        raise CycleFault(stop, Fault(kind.value, ch.axis.name, k, detail), True)
+    ch.axis.write(u)
+
+
+def _left_operation(ch: Channel, k: int) -> Fault:
+    """The drive is no longer in Operation Enabled though the master keeps asking for it."""
+    axis = ch.axis
+    power = axis.power
+    if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+        emcy = getattr(axis, "last_emcy", None)
+        code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
+        return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
+                     f"statusword 0x{getattr(axis, 'statusword', 0):04X}{code})")
+    return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
+                 f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
+
+
+def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, FaultKind, str] | None:
+    lim = ch.limits
+    name = ch.axis.name
+    last, ch.last_position = ch.last_position, pos
+    if last is not None and k and abs(pos - last) > lim.max_speed * dt:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
+            f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
+    if last is None:
+        ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
+    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    if jump is not None:
+        return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
+            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
+            "violent oscillation)")
+    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
+        return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
+            f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
+    err = ref - pos
+    if err > lim.following_error or err < -lim.following_error:
+        since = ch.following_since
+        if since is None:
+            since = ch.following_since = k
+        if k == 0:
+            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
+                f"axis {name}: at {pos:.6f} m but the profile starts at {ref:.6f} m; nothing moved"
+            )
+        if (k - since) * dt >= lim.following_time:
+            return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
+                f"axis {name}: following error {err * 1e6:.1f} um beyond the {lim.following_error * 1e6:.0f} um "
+                f"window at t={k * dt:.3f} s"
+            )
+    else:
+        ch.following_since = None
+    return None

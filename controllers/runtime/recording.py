@@ -1,0 +1,160 @@
+"""A run's record: every cycle's reference, position, velocity and effort per axis, turned into traces.
+
+:class:`Recording` preallocates the arrays (``keep``) and/or streams rows through
+:class:`~drivectl.tracefile.stream.TraceWriter` (an append per cycle: no I/O in the cycle);
+:meth:`Recording.result` makes the :class:`RunResult` (one trace per axis, how the run ended).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from drivectl.controllers.runtime.cycle import Channel, Fault, StopReason
+from drivectl.driver.axis import Feedback
+from drivectl.tracefile.format import Trace, format_value
+
+if TYPE_CHECKING:
+    from drivectl.controllers.runtime.pacing import Pacer
+    from drivectl.controllers.runtime.servo import RunOutcome, RunPlan
+
+
+@dataclass
+class RunResult:
+    """One trace per axis and why the run ended."""
+
+    traces: dict[str, Trace]
+    stop: StopReason = StopReason.COMPLETED
+    detail: str = ""
+    cycles: int = 0
+    clipped: dict[str, int] = field(default_factory=dict)
+    fault: Fault | None = None
+    #: False when the run ended before any axis was asked to enable (nothing moved)
+    enabled: bool = True
+    #: the files the run streamed its traces to (``stream=``), per axis
+    paths: dict[str, Path] = field(default_factory=dict)
+    #: why a streamed trace could not be written whole (the run itself went on), per axis
+    stream_errors: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def trace(self) -> Trace:
+        """The trace of a single-axis run."""
+        return next(iter(self.traces.values()))
+
+    @property
+    def ok(self) -> bool:
+        return self.stop is StopReason.COMPLETED
+
+
+class Recording:
+    """Position, velocity and effort of every cycle of a run, preallocated; turned into one
+    :class:`~drivectl.tracefile.format.Trace` per axis at the end, and (``stream``) written as the run goes
+    through :class:`~drivectl.tracefile.stream.TraceWriter` (an append per cycle: no I/O in the cycle)."""
+
+    COLUMNS = ("time_s", "ref_m", "pos_m", "effort", "vel_m_s")
+
+    def __init__(self, plan: RunPlan, stream: str | Path | None = None, paced: bool = False):
+        self.plan = plan
+        self.dt = plan.dt
+        if not plan.keep and stream is None:
+            raise ValueError("run: a plan made with keep=False records only by streaming: give stream=")
+        n = plan.cycles if plan.keep else 0
+        self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
+        self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
+        self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
+        self._head = [self._head_meta(ch, paced) for ch in plan.channels]
+        self.writers: list = []
+        if stream is not None:
+            from drivectl.tracefile.stream import TraceWriter
+
+            try:
+                for ch, head in zip(plan.channels, self._head, strict=True):
+                    # unpaced: the loop writes its own full blocks (no writer thread taking the GIL mid-cycle)
+                    self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head,
+                                                    inline=not paced).start())
+            except BaseException:
+                self.abandon()
+                raise
+        self._append = [w.append for w in self.writers] if self.writers else None
+
+    def _head_meta(self, ch: Channel, paced: bool) -> dict[str, str]:
+        """What is known before the run: the header of a streamed trace."""
+        return {
+            "axis": ch.axis.name,
+            "effort_unit": ch.axis.effort_unit,
+            "dt_s": format_value(self.plan.dt),
+            **{k: format_value(v) for k, v in ch.controller.describe().items()},
+            **{k: format_value(v) for k, v in ch.meta.items()},
+            "clock": "wall clock, paced" if paced else "lockstep",
+        }
+
+    def record(self, i: int, k: int, fb: Feedback, u: float, ref: float) -> None:
+        if self._rows is not None:
+            r, pos, vel, eff = self._rows[i]
+            r[k] = ref
+            pos[k] = fb.position
+            vel[k] = fb.velocity
+            eff[k] = u
+        if self._append is not None:
+            self._append[i](k * self.dt, ref, fb.position, u, fb.velocity)
+
+    def abandon(self) -> None:
+        for w in self.writers:
+            try:
+                w.abandon()
+            except Exception:  # noqa: BLE001 - the others must still be closed
+                pass
+        self._append = None
+
+    def result(self, out: RunOutcome, pacer: Pacer | None) -> RunResult:
+        plan, n = self.plan, out.cycles
+        pacing = {}
+        if pacer is not None and n:
+            pacing = {"paced": "wall clock", "missed_deadlines": str(pacer.missed),
+                      "missed_fraction": format_value(pacer.missed / n),
+                      "worst_late_ms": format_value(pacer.worst_late * 1e3)}
+        traces = {}
+        paths: dict[str, Path] = {}
+        errors: dict[str, str] = {}
+        t = plan.t[:n] if plan.keep else None
+        for i, ch in enumerate(plan.channels):
+            head = self._head[i]
+            meta = {
+                **head,
+                "cycles": str(n),
+                "stop": out.stop.value,
+                **pacing,
+            }
+            if out.detail:
+                meta["stop_detail"] = out.detail
+            if ch.clipped:
+                meta["effort_clipped_cycles"] = str(ch.clipped)
+            for key, value in getattr(ch.axis, "counters", {}).items():
+                meta[key] = str(value - self._counters0[i].get(key, 0))
+            if out.fault is not None:
+                meta.update(out.fault.meta())
+                name = ch.axis.name
+                meta["safe_state"] = out.fault.safe_state.get(name, "unknown")
+                after = out.fault.safe_after.get(name)
+                meta["safe_after_cycles"] = "unknown" if after is None else str(after)
+            if plan.keep:
+                cols = {"time_s": t, **{k: v[:n] for k, v in self._cols[i].items()}}
+                traces[ch.axis.name] = Trace({k: cols[k] for k in self.COLUMNS}, meta)
+            if self.writers:
+                w = self.writers[i]
+                try:
+                    paths[ch.axis.name] = w.close({k: v for k, v in meta.items() if k not in head})
+                except Exception as exc:  # noqa: BLE001 - a write error must not lose the run's result
+                    errors[ch.axis.name] = str(exc)
+                if not plan.keep:  # the record is the file: read back (the rows it has, if it failed)
+                    try:
+                        tr = traces[ch.axis.name] = Trace.read(paths.get(ch.axis.name) or w.partial)
+                        if ch.axis.name in errors:  # cut short by the disk, not by the run: say how the run ended
+                            tr.meta.update({k: v for k, v in meta.items() if k != "cycles"})
+                    except Exception as exc:  # noqa: BLE001
+                        errors.setdefault(ch.axis.name, str(exc))
+        return RunResult(traces, out.stop, out.detail, n, {ch.axis.name: ch.clipped for ch in plan.channels},
+                         out.fault, out.started, paths, errors)

@@ -452,7 +452,7 @@ class Machine:
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
         self.unconfirmed: list[str] = []  # axes whose drive did not confirm the disable on close
-        self._lockstep_bus = all(getattr(a, "lockstep", True) for a in hardware.axes.values())
+        self._lockstep_bus = all(a.lockstep for a in hardware.axes.values())
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
 
@@ -589,8 +589,7 @@ def connect(
         for n in names:
             ac = cfg.axis(n)
             axis = hw.axes[n]
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,

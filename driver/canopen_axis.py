@@ -41,7 +41,7 @@ import can
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.axis import LAST_RESORTS, Axis, AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.axis_boot import AxisBoot, Identity
 from drivectl.driver.axis_stop import AxisStop
 from drivectl.driver.cia301 import (
@@ -79,7 +79,7 @@ _HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
 EMCY_KEPT = 32
 
 
-class CanopenAxis(AxisBoot, AxisStop):
+class CanopenAxis(AxisBoot, AxisStop, Axis):
     """One CiA 402 drive behind the Axis protocol."""
 
     def __init__(
@@ -424,6 +424,10 @@ class CanopenAxis(AxisBoot, AxisStop):
         across processes a drive has its own clock and nothing changes."""
         if self.lockstep:
             self.network.lockstep.pace(wall)
+
+    def read_digital_inputs(self) -> int:
+        """0x60FD by SDO (the drive's switches; homing reads them)."""
+        return int(self.node.sdo[cia402.DIGITAL_INPUTS].raw)
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

@@ -152,10 +152,10 @@ def _left_operation(ch: Channel, k: int) -> Fault:
     axis = ch.axis
     power = axis.power
     if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
-        emcy = getattr(axis, "last_emcy", None)
+        emcy = axis.last_emcy
         code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
         return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
-                     f"statusword 0x{getattr(axis, 'statusword', 0):04X}{code})")
+                     f"statusword 0x{axis.statusword:04X}{code})")
     return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
                  f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
 
@@ -170,7 +170,7 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
     if last is None:
         ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
-    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    jump = position_jump(ch.jump, pos, lim.max_jump, ch.axis.lost_cycles > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "

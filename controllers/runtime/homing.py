@@ -148,10 +148,7 @@ def parse_emulator_io(src: str, key: str, raw: Any) -> EmulatorIO | None:
 # -- the procedures ------------------------------------------------------------------------------------------
 def read_inputs(machine: Any, axis: Any) -> int:
     """0x60FD of the drive: from the emulated drive model without a bus, else by SDO."""
-    hw = axis._rt.ch.axis
-    if hasattr(hw, "read_digital_inputs"):
-        return machine._bus(hw.read_digital_inputs)
-    return int(machine._bus(lambda: hw.node.sdo[DIGITAL_INPUTS].raw))
+    return machine._bus(axis._rt.ch.axis.read_digital_inputs)
 
 
 def home(machine: Any, axis: Any) -> Any:

@@ -66,7 +66,7 @@ from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
 from drivectl.controllers.runtime.host import release_gc, release_switch, take_gc, take_switch
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
-from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
+from drivectl.controllers.runtime.safe_stop import drive_error_code, quietly, stop_channels
 from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
@@ -229,8 +229,8 @@ class ServoLoop:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
             axis = rt.ch.axis
-            if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
-                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+            if axis.power in _ENABLED:
+                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive (by SDO on a bus)
             states[rt.name] = axis.power.value
         return states
 
@@ -326,8 +326,7 @@ class ServoLoop:
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u
         rt.following_error = ref.position - pos
         ax = ch.axis
-        rt.ring.push(k, ref.position, pos, u, fb.velocity, getattr(ax, "torque_actual", math.nan),
-                     getattr(ax, "statusword", 0))
+        rt.ring.push(k, ref.position, pos, u, fb.velocity, ax.torque_actual, ax.statusword)
         if run is not None and run.k < run.n:
             i = run.k
             r = run.rows
@@ -363,8 +362,7 @@ class ServoLoop:
         ax.write(0.0)
         pos = fb.position - rt.offset
         rt.position, rt.velocity, rt.reference, rt.effort, rt.following_error = pos, fb.velocity, pos, 0.0, 0.0
-        rt.ring.push(k, pos, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
-                     getattr(ax, "statusword", 0))
+        rt.ring.push(k, pos, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
         if rt.captures:
             self._captures(rt, k)
         if rt.state is AxisState.ENABLING:
@@ -635,11 +633,7 @@ _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
 
 def drive_error(axis: Axis) -> tuple[int, str] | None:
     """The drive's 0x603F (code, text), read by SDO where the axis can, else its last EMCY."""
-    code = None
-    if hasattr(axis, "read_error_code"):
-        code = quietly(axis.read_error_code)
-    if code is None and getattr(axis, "last_emcy", None):
-        code = axis.last_emcy[0]
+    code = drive_error_code(axis)
     if code is None:
         return None
     return int(code), error_text(int(code))

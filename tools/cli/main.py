@@ -276,8 +276,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                 meta["injected"] = "; ".join(str(f) for f in faults)
             axis = machine.axes[name]
             # limits the configuration leaves out come from the drive (0x6065/0x6066, 0x607D)
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, controllers[name], profiles[name], limits, meta))
     except BaseException:
         machine.close()

@@ -370,8 +370,7 @@ class Shell(cmd.Cmd):
     def do_scan(self, arg: str) -> bool:
         for name, ax in self.m.axes.items():
             hw = self.m.hardware.axes[name]
-            ident = getattr(hw, "identity", None)
-            node = getattr(hw, "node_id", None)
+            ident, node = hw.identity, hw.node_id
             who = (f"node {node}, vendor 0x{ident.vendor_id:08X} product 0x{ident.product_code:08X}"
                    if ident is not None and node is not None else "no bus (SimAxis)")
             self.say(f"{name}: {who}, {ax.power.value}")

@@ -542,8 +542,7 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
             if effects:
                 meta["effects"] = "; ".join(f"{e}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for e, p in effects)
             axis = machine.axes[n]
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, wrappers[n], schedules[n], limits, meta))
         result = run_channels(channels, stop_request=request)
     finally:

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, CaptureError, Trigger
+from drivectl.controllers.runtime.handles import MoveStatus
 from drivectl.controllers.runtime.interrupt import stop_on_signals
 from drivectl.controllers.runtime.loop import (
     AxisRuntime,
@@ -58,11 +59,11 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     """In the loop's cycle, before a new command takes the axis: False (the handle ended) when the axis
     is no longer servoing; else the command under way, if another, ends as replaced."""
     if rt.state is not AxisState.SERVO:
-        handle.finish("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+        handle.finish(MoveStatus.FAULT if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
         return False
     if rt.handle is not None and rt.handle is not handle:
         old, rt.handle = rt.handle, None
-        old.finish("stopped", rt, f"replaced by {kind}")
+        old.finish(MoveStatus.STOPPED, rt, f"replaced by {kind}")
     rt.ch.controller.use_preview(None)  # a run's preview ends with the run (a run installs its own)
     return True
 
@@ -199,7 +200,7 @@ class AxisControl:
             rt.jog_until = 0
             apply()
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             rt.move_started = True
 
         self._m.loop.submit(go)
@@ -240,8 +241,8 @@ class AxisControl:
             toward = rt.traj.position + math.copysign(1e3, velocity)
         if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
             done = Move(self._m.loop, self.name, "jog", velocity)
-            done.finish("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
-                      "window inside it); nothing moved")
+            done.finish(MoveStatus.STOPPED, rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one "
+                        "following-error window inside it); nothing moved")
             return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
         speed = abs(velocity)
@@ -270,11 +271,11 @@ class AxisControl:
 
         def go() -> None:
             if rt.state is not AxisState.SERVO:
-                handle.finish("done", rt, "not enabled")
+                handle.finish(MoveStatus.DONE, rt, "not enabled")
                 return
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
-                old.finish("stopped", rt, why)
+                old.finish(MoveStatus.STOPPED, rt, why)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration
@@ -283,7 +284,7 @@ class AxisControl:
             rt.jog_until = 0
             rt.traj.stop()
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             handle.target = None
 
         self._m.loop.submit(go)
@@ -353,7 +354,7 @@ class AxisControl:
             rt.ch.controller.use_preview(preview)
             rt.run = run
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             rt.move_started = True
             handle._run_meta = meta  # type: ignore[attr-defined]
             handle._trace_fn = self.run_trace

@@ -50,6 +50,8 @@ class FaultKind(StrEnum):
     LOOP_STALLED = "servo loop stalled"  # the resident loop ran no cycle for longer than its bound
     RUN_CHECK = "run check"  # a [checks] fault threshold passed (controllers/runtime/run_checks.py)
     INTERRUPTED = "interrupted"  # SIGINT / SIGTERM: the operator stopped it (controllers/runtime/interrupt.py)
+    AXIS_ERROR = "axis error"  # the axis failed without a detected kind (AxisError without one)
+    LOOP_ERROR = "loop error"  # the resident loop itself raised
 
 
 class AxisError(DrivectlError, RuntimeError):

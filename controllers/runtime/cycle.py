@@ -66,7 +66,7 @@ SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, Powe
 class Fault:
     """What ended a run other than completion, and how the axes came to rest."""
 
-    kind: str  # a FaultKind value, or "interrupted"
+    kind: FaultKind
     axis: str
     cycle: int  # trace row of the detection
     detail: str
@@ -76,7 +76,7 @@ class Fault:
     safe_state: dict[str, str] = field(default_factory=dict)
 
     def meta(self) -> dict[str, str]:
-        out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
+        out = {"fault_kind": str(self.kind), "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
             stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
@@ -121,7 +121,7 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
         fb = ch.axis.read()
     except AxisError as exc:
         raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
-                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
+                         Fault(exc.kind or FaultKind.AXIS_ERROR, ch.axis.name, k, str(exc)),
                          False) from None
     if ch.axis.power is not PowerState.OPERATION_ENABLED:
         raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
@@ -154,9 +154,9 @@ def _left_operation(ch: Channel, k: int) -> Fault:
     if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
         emcy = axis.last_emcy
         code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
-        return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
+        return Fault(FaultKind.DRIVE_FAULT, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
                      f"statusword 0x{axis.statusword:04X}{code})")
-    return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
+    return Fault(FaultKind.DRIVE_STOPPED, axis.name, k,
                  f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
 
 

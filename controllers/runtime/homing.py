@@ -154,12 +154,12 @@ def read_inputs(machine: Any, axis: Any) -> int:
 def home(machine: Any, axis: Any) -> Any:
     """Home ``axis`` (an AxisControl) by its configuration; returns the finished homing's Move handle
     (lockstep: at once; wall clock: the homing runs in a helper thread, the handle ends when it does)."""
-    from drivectl.controllers.runtime.handles import Move
+    from drivectl.controllers.runtime.handles import Move, MoveStatus
 
     cfg = machine.config.axis(axis.name).homing or HomingConfig()
     axis._require_enabled("home")
     handle = Move(machine.loop, axis.name, f"home ({cfg.method})", cfg.position)
-    handle.status = "moving"
+    handle.status = MoveStatus.MOVING
 
     def procedure() -> None:
         rt = axis._rt
@@ -172,12 +172,12 @@ def home(machine: Any, axis: Any) -> Any:
             else:
                 _home_hard_stop(machine, axis, cfg)
             handle.settled = True
-            handle.finish("done", rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
+            handle.finish(MoveStatus.DONE, rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
         except Exception as exc:  # noqa: BLE001 - the handle carries it to whoever waits
             from drivectl.controllers.runtime.handles import MotionFault
 
             fault = getattr(exc, "fault", None)
-            handle.finish("fault", rt, str(exc), fault if fault is not None else None)
+            handle.finish(MoveStatus.FAULT, rt, str(exc), fault if fault is not None else None)
             handle.error = exc  # type: ignore[attr-defined]
             if not isinstance(exc, MotionFault | HomingError):
                 raise
@@ -213,6 +213,8 @@ def _restore(machine: Any, axis: Any, limits: Any) -> None:
 
 def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float, what: str) -> float:
     """Jog at ``velocity`` (renewed) until ``found()``; returns the position at that cycle."""
+    from drivectl.controllers.runtime.handles import MoveStatus
+
     loop = machine.loop
     start = axis.position
     rt = axis._rt
@@ -224,7 +226,7 @@ def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float,
             rt.traj.move_to(rt.traj.position + math.copysign(travel, velocity), abs(velocity))
 
     loop.submit(retarget)
-    machine.run_until(lambda: jog.status != "pending" or jog.done, 5.0)  # taken by the loop (wall clock)
+    machine.run_until(lambda: jog.status != MoveStatus.PENDING or jog.done, 5.0)  # taken by the loop (wall clock)
     while True:
         if found():
             pos = axis.position
@@ -262,6 +264,8 @@ def _home_switch(machine: Any, axis: Any, cfg: HomingConfig) -> None:
 
 
 def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
+    from drivectl.controllers.runtime.handles import MoveStatus
+
     lim = axis._rt.ch.limits
     window = max(lim.following_error, 2 * cfg.hard_stop_error)
     old = _with_limits(machine, axis, position=None, following_error=window,
@@ -275,7 +279,7 @@ def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
         def hold() -> None:  # the reference back to where the axis stands: the push ends
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h.finish("stopped", rt, "hard stop found")
+                h.finish(MoveStatus.STOPPED, rt, "hard stop found")
             rt.jog_until = 0
             rt.traj.hold(rt.position)
             rt.ch.controller.reset()

@@ -62,7 +62,7 @@ from drivectl.controllers.runtime.cycle import (
     control,
     sample_axis,
 )
-from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
+from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, ProfileRun
 from drivectl.controllers.runtime.host import release_gc, release_switch, take_gc, take_switch
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
@@ -295,11 +295,11 @@ class ServoLoop:
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
             except AxisError as exc:  # a write that failed (bus error): a fault like any other
-                self._fault(Fault(exc.kind.value if exc.kind else "axis error", self._axis_named(exc), k, str(exc)),
+                self._fault(Fault(exc.kind or FaultKind.AXIS_ERROR, self._axis_named(exc), k, str(exc)),
                             StopReason.FAULT)
             except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
-                self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
-                                  f"{exc}"), StopReason.FAULT)
+                self._fault(Fault(FaultKind.LOOP_ERROR, self._rts[0].name, k,
+                                  f"the servo loop raised {type(exc).__name__}: {exc}"), StopReason.FAULT)
             self.cycle = k + 1
 
     def _axis_named(self, exc: Exception) -> str:
@@ -388,8 +388,8 @@ class ServoLoop:
     def _progress(self, rt: AxisRuntime) -> None:
         """Has the current command ended? (a move: reference arrived and in position, or timed out)."""
         h = rt.handle
-        if h.status == "pending":
-            h.status = "moving"
+        if h.status == MoveStatus.PENDING:
+            h.status = MoveStatus.MOVING
         h.cycles += 1
         if rt.run is not None:
             run = rt.run
@@ -398,15 +398,16 @@ class ServoLoop:
             rt.traj.hold(run.refs[0][run.n - 1])
             rt.run = None
             h._run = run
-            h.status = "settling"
+            h.status = MoveStatus.SETTLING
         if h.kind == "jog":
             if rt.traj.arrived:  # stopped by the dead man or stop()
                 rt.handle = None
-                h.finish("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
+                h.finish(MoveStatus.STOPPED if h.status != MoveStatus.DONE else MoveStatus.DONE, rt,
+                         "jog ended (not renewed or stopped)")
             return
         if not rt.traj.arrived:
             return
-        h.status = "settling"
+        h.status = MoveStatus.SETTLING
         m = rt.motion
         if abs(rt.traj.target - rt.position) <= m.in_position:
             h._in_position += 1
@@ -419,7 +420,7 @@ class ServoLoop:
             return
         rt.handle = None
         then, h._then = h._then, None
-        h.finish("done", rt, "" if h.settled else
+        h.finish(MoveStatus.DONE, rt, "" if h.settled else
                f"not within {m.in_position * 1e6:g} um of the target {m.settle_timeout:g} s after the reference "
                f"arrived (error {(rt.traj.target - rt.position) * 1e6:+.2f} um)")
         if then is not None:
@@ -463,7 +464,7 @@ class ServoLoop:
                 rt.fault = fault
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h.finish("fault", rt, fault.detail, fault)
+                h.finish(MoveStatus.FAULT, rt, fault.detail, fault)
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
@@ -492,7 +493,7 @@ class ServoLoop:
         rt.jog_until = 0
         if rt.handle is not None:
             h, rt.handle = rt.handle, None
-            h.finish("stopped", rt, why)
+            h.finish(MoveStatus.STOPPED, rt, why)
 
     # -- wall clock -------------------------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -574,7 +575,7 @@ class ServoLoop:
         servo = next((rt for rt in self._rts if rt.state is AxisState.SERVO), None)
         if servo is None:
             return
-        fault = Fault(FaultKind.LOOP_STALLED.value, servo.name, servo.servo_k,
+        fault = Fault(FaultKind.LOOP_STALLED, servo.name, servo.servo_k,
                       f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
                       f"(bound {self.stall_s * 1e3:g} ms)")
         with self.io_lock:

@@ -221,7 +221,7 @@ def stop_channels(channels: Sequence[Channel], fault: Fault | None = None) -> No
             fault.statusword = faulted.statusword
             code = drive_error_code(faulted)
             fault.error_code = code
-            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+            if code and fault.kind is FaultKind.DRIVE_STOPPED:  # why the drive stopped, in its own words
                 fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 

@@ -561,7 +561,7 @@ def connect(
 
     ``axes``: which (default all); ``clock``: "lockstep" or "wall" (default: lockstep on the virtual
     bus and with ``sim``, wall elsewhere); ``start``: emulated axes' positions at power-on, m;
-    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see README, Faults;
+    ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see docs/faults.md;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
     fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
     ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see

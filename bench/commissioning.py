@@ -44,7 +44,7 @@ def main() -> None:
         t0 = time.perf_counter()
         # the search's own speed, on the model alone (the robust default scores every candidate on the
         # model and its 32 +-10 % corners too: 33 runs per candidate), on paper 004's ASMC as the figure
-        # has always been taken (x's default is mbc now, whose design per candidate is slower: README)
+        # has always been taken (x's default is mbc now, whose design per candidate is slower: docs/precision.md)
         tune(cfg, "x", controller="asmc", candidates=200, verify=False, corners=0)
         tune_s = time.perf_counter() - t0
     out = {"identify_max_rel_err": worst, "bode_mode_hz": bode.mode_hz, "tune_seconds": tune_s}

@@ -1,4 +1,4 @@
-"""A learned feedforward added to any controller's effort (iterative learning control, issue 16 point 5).
+"""A learned feedforward added to any controller's effort (iterative learning control).
 
 :class:`LearnedFeedforward` wraps a :class:`~drivectl.controllers.base.Controller` and adds, at cycle k
 of a run, the k-th sample of a correction sequence (effort unit) to the inner controller's effort. The

@@ -14,7 +14,7 @@ two bandwidths with physical meaning, and computes every gain (``scipy.linalg.so
   is exact except within two cycles of a jerk switch. On a two-mass model the snap impulse of the exact
   inverse at each jerk switch is spread over a short centred window computed from the model
   (``snap = "spread"``, :meth:`LinearModel.snap_spread`: 3.2 ms on two-mass): it cut the effort's
-  roughness by a third (bench/precision.py, README).
+  roughness by a third (bench/precision.py, docs/precision.md).
 * **Kalman filter** on the model discretised exactly for the cycle, with the command in flight (the one
   sent last cycle, acting now) and two disturbance states: an effort-equivalent disturbance d and its
   rate. Where the model names a disturbance frequency (paper 000's d = 0.1 sin(pi t)) d is an oscillator at

@@ -50,7 +50,7 @@ last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT St
 [axes.x.controller_settings]
 # mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, 0.03 um off
 # where a move ends against 4 um (ASMC has no integral action against the Coulomb friction), with an
-# unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, README). Its du rms over
+# unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, docs/precision.md). Its du rms over
 # the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
 # (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle
 # (over 10.5 s: 1.31 against 1.38). `bode` measures it about a constant-velocity bias (the axis slides,

@@ -1,4 +1,4 @@
-"""The README's pytest example (docs/examples/test_my_axis.py) runs as a user's CI would run it."""
+"""The pytest example of docs/guide/python.md (docs/examples/test_my_axis.py) runs as a user's CI would run it."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ friction. Measured here (SimAxis, x circle): Stribeck excess 15 N / 2 mm/s witho
 model 18.0 um max -> 4.2 um with the model explain augments (4.3x); with --noise 2 it holds only with a
 stiffer loop than mbc's default (bandwidth_hz 80: 11.0 -> 2.4 um, 4.6-5.8x over seeds 0-2; the default
 40 Hz: 15.6 -> 14.7, the noise makes the axis stick and slip at the reversal); Coulomb friction 10 % above
-the model: no lasting offset (ASMC keeps 11-14 um). See the README."""
+the model: no lasting offset (ASMC keeps 11-14 um). See docs/guide/plant-and-model.md."""
 
 from __future__ import annotations
 

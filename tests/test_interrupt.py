@@ -53,7 +53,7 @@ def test_a_signal_inside_a_cycle_lets_the_cycle_finish_then_stops(signum):
     assert axis.power is PowerState.SWITCH_ON_DISABLED
     meta = res.trace.meta
     assert meta["fault_kind"] == "interrupted" and meta["safe_state"] == "Switch On Disabled"
-    # the README's bound: seen at the next cycle boundary (cycle 300), torque off one cycle later
+    # docs/faults.md's bound: seen at the next cycle boundary (cycle 300), torque off one cycle later
     assert meta["fault_cycle"] == "300" and meta["safe_after_cycles"] == "1"
     assert signal.getsignal(signum) is before  # the run's own handler is gone again
 

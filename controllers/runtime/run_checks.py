@@ -48,7 +48,7 @@ _COUNTED = (
 class RunChecks:
     """Fractions of a run's cycles: past ``*_warn`` a warning, past ``*_fault`` a fault."""
 
-    missed_deadlines_warn: float = 0.005  # README: 0.07-0.28 % on an idle machine
+    missed_deadlines_warn: float = 0.005  # docs/canopen.md (bench/loop_rate.py): 0.07-0.28 % on an idle machine
     missed_deadlines_fault: float = 0.05
     clipped_warn: float = 0.01
     clipped_fault: float = 0.5

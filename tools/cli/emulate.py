@@ -62,7 +62,8 @@ def add_emulate_parser(sub: Any) -> None:
     e.add_argument("--bus-log", metavar="FILE", help="record every frame, sent and received, stamped on the host's "
                    "clock (python-can Logger, format by suffix: .asc, .blf, .log, .csv, .trc)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
-                   help=f"inject a fault TIME s after the drive is enabled (repeatable; kinds: {', '.join(KINDS)})")
+                   help=f"inject a fault TIME s after the drive is enabled (repeatable; kinds: {', '.join(KINDS)}; "
+                   "see docs/faults.md)")
     e.add_argument("--boot-delay-ms", type=float, default=None, metavar="MS",
                    help="boot-up message this long after power-on or an NMT reset (default 50 ms)")
     e.add_argument("--sync-loss-ms", type=float, default=None, metavar="MS",

@@ -135,7 +135,8 @@ def add_trace_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
-                   f"emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: {', '.join(KINDS)})")
+                   f"emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: {', '.join(KINDS)}; "
+                   "see docs/faults.md)")
     from drivectl.tools.commissioning.learn import add_learning_arguments
 
     add_learning_arguments(t)

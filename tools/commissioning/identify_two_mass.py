@@ -1,4 +1,4 @@
-"""Identify a two-mass axis (paper 000 eq (1)) from its closed-loop frequency response (issue 16 point 2).
+"""Identify a two-mass axis (paper 000 eq (1)) from its closed-loop frequency response.
 
 ``drivectl identify --axis z``: the axis holds its position under its controller while bode's multisine
 is added to the effort (tools/commissioning/frf.py: ``H = S_ry / S_ru``, unbiased in closed loop); the model's FRF

@@ -1,6 +1,6 @@
 """Iterative learning control: the same move N times, a feedforward correction learned from each run's error.
 
-``drivectl trace --repeat N --learn`` (issue 16 point 5). Users repeat one move thousands of times a
+``drivectl trace --repeat N --learn``. Users repeat one move thousands of times a
 shift; what repeats in its error (the lag of the loop on the move's jerk, a mode the feedforward
 does not cancel, friction where the model is wrong) can be learned and taken off by a correction
 added to the controller's effort (:class:`~drivectl.controllers.learning.LearnedFeedforward`, any

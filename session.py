@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, CaptureError, Trigger
+from drivectl.controllers.runtime.handles import MoveStatus
 from drivectl.controllers.runtime.interrupt import stop_on_signals
 from drivectl.controllers.runtime.loop import (
     AxisRuntime,
@@ -61,11 +62,11 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     """In the loop's cycle, before a new command takes the axis: False (the handle ended) when the axis
     is no longer servoing; else the command under way, if another, ends as replaced."""
     if rt.state is not AxisState.SERVO:
-        handle.finish("fault" if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
+        handle.finish(MoveStatus.FAULT if rt.fault else "stopped", rt, "the axis was no longer enabled", rt.fault)
         return False
     if rt.handle is not None and rt.handle is not handle:
         old, rt.handle = rt.handle, None
-        old.finish("stopped", rt, f"replaced by {kind}")
+        old.finish(MoveStatus.STOPPED, rt, f"replaced by {kind}")
     rt.ch.controller.use_preview(None)  # a run's preview ends with the run (a run installs its own)
     return True
 
@@ -250,7 +251,7 @@ class AxisControl:
             if planned:
                 rt.ch.controller.use_preview(plan[1])
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             rt.move_started = True
 
         self._m.loop.submit(go)
@@ -292,8 +293,8 @@ class AxisControl:
             toward = rt.traj.position + math.copysign(1e3, velocity)
         if (toward - rt.traj.position) * velocity <= 0:  # a jog button held at the limit: nothing to do, no error
             done = Move(self._m.loop, self.name, "jog", velocity)
-            done.finish("stopped", rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one following-error "
-                      "window inside it); nothing moved")
+            done.finish(MoveStatus.STOPPED, rt, f"at the soft limit already (jogs stop at {toward:.6f} m, one "
+                        "following-error window inside it); nothing moved")
             return done
         deadman = max(1, int(round(rt.motion.jog_deadman / self._m.loop.dt)))
         speed = abs(velocity)
@@ -321,11 +322,11 @@ class AxisControl:
 
         def go() -> None:
             if rt.state is not AxisState.SERVO:
-                handle.finish("done", rt, "not enabled")
+                handle.finish(MoveStatus.DONE, rt, "not enabled")
                 return
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
-                old.finish("stopped", rt, why)
+                old.finish(MoveStatus.STOPPED, rt, why)
             rt.ch.controller.use_preview(None)  # the move's plan ends here (the stop is planned in the cycle)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
@@ -335,7 +336,7 @@ class AxisControl:
             rt.jog_until = 0
             rt.traj.stop()
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             handle.target = None
 
         self._m.loop.submit(go)
@@ -405,7 +406,7 @@ class AxisControl:
             rt.ch.controller.use_preview(preview)
             rt.run = run
             rt.handle = handle
-            handle.status = "moving"
+            handle.status = MoveStatus.MOVING
             rt.move_started = True
             handle._run_meta = meta  # type: ignore[attr-defined]
             handle._trace_fn = self.run_trace
@@ -505,7 +506,7 @@ class Machine:
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
         self.unconfirmed: list[str] = []  # axes whose drive did not confirm the disable on close
-        self._lockstep_bus = all(getattr(a, "lockstep", True) for a in hardware.axes.values())
+        self._lockstep_bus = all(a.lockstep for a in hardware.axes.values())
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
 
@@ -651,8 +652,7 @@ def connect(
         for n in names:
             ac = cfg.axis(n)
             axis = hw.axes[n]
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,

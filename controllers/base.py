@@ -17,16 +17,17 @@ import dataclasses
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import field
 from typing import Any, ClassVar
 
 import numpy as np
 
 from drivectl.driver.axis import Feedback
+from drivectl.errors import InputError
 from drivectl.profiles.base import Reference
 
 
-class SettingsError(ValueError):
+class SettingsError(InputError):
     """A setting is missing, of the wrong type or out of range. The message is one line."""
 
 
@@ -39,9 +40,11 @@ def param(
     hi_open: bool = False,
     unit: str = "",
     doc: str = "",
+    finite: bool = True,
 ) -> Any:
-    """A numeric settings field with its admissible range ``lo .. hi`` (open or closed ends)."""
-    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "unit": unit, "doc": doc}
+    """A numeric settings field with its admissible range ``lo .. hi`` (open or closed ends); ``finite=False``
+    admits +-inf (a limit that is not set), never NaN."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "unit": unit, "doc": doc, "finite": finite}
     return field(default=default, metadata=meta)
 
 
@@ -63,12 +66,15 @@ def _range_text(meta: Mapping[str, Any]) -> str:
     return "a finite number"
 
 
-@dataclass
 class Settings:
-    """Base of every controller's settings; validates each field against its declared range."""
+    """Base of validated settings (every controller's, the axis's limits): subclasses are dataclasses,
+    frozen or not, whose fields declare their ranges; each field is checked against its range."""
+
+    #: the name a bad value is reported under when no source is given
+    where: ClassVar[str] = "settings"
 
     def __post_init__(self) -> None:
-        self.validate()
+        self.validate(self.where)
 
     def validate(self, source: str = "settings", prefix: str = "") -> None:
         """Raise SettingsError naming ``source`` and ``prefix + field`` for the first bad field."""
@@ -86,7 +92,7 @@ class Settings:
             arr = np.asarray(value) if not isinstance(value, list | tuple | dict) else None  # arrays: numpy only
             if arr is None or arr.dtype == bool or not np.issubdtype(arr.dtype, np.number):
                 raise SettingsError(f"{source}: {name}: expected a number, got {value!r}")
-            if not np.all(np.isfinite(arr)):
+            if not np.all(np.isfinite(arr)) and (meta.get("finite", True) or np.any(np.isnan(arr))):
                 raise SettingsError(f"{source}: {name}: expected a finite number, got {value!r}")
             lo, hi = meta["lo"], meta["hi"]
             bad = False
@@ -118,7 +124,7 @@ class Settings:
                 value = f.default_factory()
             else:
                 raise SettingsError(f"{source}: {prefix}{f.name}: missing (required)")
-            setattr(obj, f.name, value)
+            object.__setattr__(obj, f.name, value)  # frozen subclasses too
         obj.validate(source, prefix)
         return obj
 

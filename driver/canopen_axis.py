@@ -45,7 +45,7 @@ import can
 import canopen
 
 from drivectl.driver import cia402
-from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.axis import LAST_RESORTS, Axis, AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.axis_boot import AxisBoot, Identity
 from drivectl.driver.axis_stop import AxisStop
 from drivectl.driver.capabilities import DriveRefused, assess
@@ -90,7 +90,7 @@ _RX_KIND = {cia402.CONTROLWORD: _RX_CW, cia402.TARGET_TORQUE: _RX_TT}
 EMCY_KEPT = 32
 
 
-class CanopenAxis(AxisBoot, AxisStop):
+class CanopenAxis(AxisBoot, AxisStop, Axis):
     """One CiA 402 drive behind the Axis protocol."""
 
     def __init__(
@@ -494,6 +494,10 @@ class CanopenAxis(AxisBoot, AxisStop):
         return enable_blocker(sw, error_code=read(cia402.ERROR_CODE),
                               emcy_code=self.last_emcy[0] if self.last_emcy else None,
                               mode_display=read(cia402.MODES_OF_OPERATION_DISPLAY), mode=getattr(self, "mode", None))
+
+    def read_digital_inputs(self) -> int:
+        """0x60FD by SDO (the drive's switches; homing reads them)."""
+        return int(self.node.sdo[cia402.DIGITAL_INPUTS].raw)
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

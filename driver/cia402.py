@@ -37,6 +37,7 @@ MAX_TORQUE = 0x6072  # per mille of rated
 RATED_TORQUE = 0x6076  # mN m (here: milli effort units, mN or mV)
 TORQUE_ACTUAL = 0x6077  # per mille of rated
 SOFTWARE_POSITION_LIMIT = 0x607D  # 1 min, 2 max, counts
+DIGITAL_INPUTS = 0x60FD  # bit 0 negative limit, 1 positive limit, 2 home switch (optional object)
 SUPPORTED_DRIVE_MODES = 0x6502
 
 #: CiA 402 device type: profile 402 (servo drive)

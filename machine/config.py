@@ -22,6 +22,7 @@ from drivectl.controllers.runtime.run_checks import RunChecks
 from drivectl.controllers.runtime.servo import Limits
 from drivectl.driver.axis import LAST_RESORTS
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale
+from drivectl.errors import InputError
 
 DEFAULT_CONFIG_TOML = """\
 # drivectl machine configuration (embedded default: emulated drives, no hardware)
@@ -150,7 +151,7 @@ class BusConfig:
         return kwargs
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError):
     """The machine configuration is invalid; one line naming the file and the key."""
 
 

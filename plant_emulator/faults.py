@@ -23,6 +23,7 @@ import can
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import NMT_COB_ID, RPDO_BASE, SYNC_COB_ID
+from drivectl.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ KINDS: dict[str, Kind] = {
 SDO_ABORT_GENERAL = 0x08000000
 
 
-class FaultSpecError(ValueError):
+class FaultSpecError(InputError):
     """A ``--fault`` text cannot be used; the message is one line naming the field."""
 
 

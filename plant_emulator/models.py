@@ -35,13 +35,15 @@ from typing import Any
 import numpy as np
 from scipy.linalg import expm
 
+from drivectl.errors import InputError
+
 PLANTS_DIR = Path(__file__).with_name("plants")
 
 #: substeps per cycle for a plant with Coulomb friction or a dead zone (100 us at 1 kHz)
 NONLINEAR_SUBSTEPS = 10
 
 
-class PlantError(ValueError):
+class PlantError(InputError):
     """A plant file or parameter is invalid. The message is one line naming the file and the key."""
 
 

@@ -16,14 +16,14 @@ from __future__ import annotations
 
 import math
 
-from drivectl.driver.axis import AxisError, Feedback
+from drivectl.driver.axis import Axis, AxisError, Feedback
 from drivectl.driver.cia402 import MasterStateMachine, PowerState, encode_statusword
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
 from drivectl.plant_emulator.drive import DriveModel
 from drivectl.plant_emulator.models import Plant, PlantState
 
 
-class SimAxis:
+class SimAxis(Axis):
     """The Axis protocol over a :class:`Plant`, in simulated time (one plant step per ``read``)."""
 
     def __init__(

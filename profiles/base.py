@@ -19,8 +19,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from drivectl.errors import InputError
 
-class ProfileError(ValueError):
+
+class ProfileError(InputError):
     """A profile is invalid or violates a limit; the message is one line naming the profile/file and field."""
 
 

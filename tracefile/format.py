@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from drivectl.errors import InputError
+
 MAGIC = "# drivectl trace v1"
 REQUIRED = ("time_s", "ref_m", "pos_m", "effort")
 FORMATS = {"time_s": "%.6f", "ref_m": "%.9f", "pos_m": "%.9f", "effort": "%.6f"}
@@ -44,7 +46,7 @@ CHUNK_ROWS = 65536
 BUDGET_ENV = "DRIVECTL_TRACE_MAX_MB"
 
 
-class TraceError(ValueError):
+class TraceError(InputError):
     """A trace file cannot be read or used; the message is one line naming the file."""
 
 

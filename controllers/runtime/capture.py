@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivectl.errors import InputError
 from drivectl.tracefile.format import Trace, format_value
 
 CHANNELS = ("reference", "position", "following_error", "effort", "velocity", "torque", "statusword")
@@ -31,7 +32,7 @@ COLUMNS = {"reference": "ref_m", "position": "pos_m", "following_error": "follow
 TRIGGERS = ("now", "move", "fault", "level")
 
 
-class CaptureError(ValueError):
+class CaptureError(InputError):
     """A capture was asked for something it cannot do; one line naming the argument."""
 
 

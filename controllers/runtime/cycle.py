@@ -13,8 +13,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import ClassVar
 
-from drivectl.controllers.base import Controller
+from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
@@ -32,32 +33,27 @@ class StopReason(Enum):
 
 
 @dataclass(frozen=True)
-class Limits:
+class Limits(Settings):
     """What an axis may do. Defaults allow everything but a following error beyond 5 mm."""
 
+    where: ClassVar[str] = "limits"
+
     position: tuple[float, float] | None = None  # soft limits, m (0x607D)
-    max_effort: float = math.inf  # the command is clipped to +-max_effort
-    following_error: float = 5e-3  # window, m (0x6065)
-    following_time: float = 0.0  # s the error may stay outside the window (0x6066)
-    max_speed: float = 2.0  # m/s: a position step faster than this between two samples is implausible
-    #: m: a second difference of the position beyond this is an encoder glitch (controllers/runtime/run_checks.py)
-    max_jump: float = 5e-4
+    max_effort: float = param(math.inf, lo=0.0, lo_open=True, finite=False,
+                              doc="the command is clipped to +-max_effort (inf: not limited)")
+    following_error: float = param(5e-3, lo=0.0, lo_open=True, unit="m", doc="window (0x6065)")
+    following_time: float = param(0.0, lo=0.0, unit="s", doc="the error may stay outside the window this long (0x6066)")
+    max_speed: float = param(2.0, lo=0.0, lo_open=True, unit="m/s",
+                             doc="a position step faster than this between two samples is implausible")
+    max_jump: float = param(5e-4, lo=0.0, lo_open=True, unit="m", doc="a second difference of the position beyond "
+                            "this is an encoder glitch (controllers/runtime/run_checks.py)")
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
-    def __post_init__(self) -> None:
+    def validate(self, source: str = "limits", prefix: str = "") -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
-            raise ValueError(f"limits: position: lower limit must be below upper, got {self.position}")
-        if not self.max_effort > 0:
-            raise ValueError(f"limits: max_effort: must be > 0, got {self.max_effort}")
-        if not self.following_error > 0:
-            raise ValueError(f"limits: following_error: must be > 0, got {self.following_error}")
-        if not self.following_time >= 0:
-            raise ValueError(f"limits: following_time: must be >= 0, got {self.following_time}")
-        if not self.max_speed > 0:
-            raise ValueError(f"limits: max_speed: must be > 0, got {self.max_speed}")
-        if not self.max_jump > 0:
-            raise ValueError(f"limits: max_jump: must be > 0, got {self.max_jump}")
+            raise SettingsError(f"{source}: {prefix}position: lower limit must be below upper, got {self.position}")
+        super().validate(source, prefix)
 
 
 
@@ -70,7 +66,7 @@ SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, Powe
 class Fault:
     """What ended a run other than completion, and how the axes came to rest."""
 
-    kind: str  # a FaultKind value, or "interrupted"
+    kind: FaultKind
     axis: str
     cycle: int  # trace row of the detection
     detail: str
@@ -80,7 +76,7 @@ class Fault:
     safe_state: dict[str, str] = field(default_factory=dict)
 
     def meta(self) -> dict[str, str]:
-        out = {"fault_kind": self.kind, "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
+        out = {"fault_kind": str(self.kind), "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
         if self.statusword is not None:
             stale = self.safe_after.get(self.axis) is None  # the drive confirmed nothing after the stop
             out["fault_statusword"] = f"0x{self.statusword:04X}" + (" (the last received)" if stale else "")
@@ -125,7 +121,7 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
         fb = ch.axis.read()
     except AxisError as exc:
         raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
-                         Fault(exc.kind.value if exc.kind else "axis error", ch.axis.name, k, str(exc)),
+                         Fault(exc.kind or FaultKind.AXIS_ERROR, ch.axis.name, k, str(exc)),
                          False) from None
     if ch.axis.power is not PowerState.OPERATION_ENABLED:
         raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
@@ -156,11 +152,11 @@ def _left_operation(ch: Channel, k: int) -> Fault:
     axis = ch.axis
     power = axis.power
     if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
-        emcy = getattr(axis, "last_emcy", None)
+        emcy = axis.last_emcy
         code = f"; EMCY 0x{emcy[0]:04X}: {error_text(emcy[0])}" if emcy else ""
-        return Fault(FaultKind.DRIVE_FAULT.value, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
-                     f"statusword 0x{getattr(axis, 'statusword', 0):04X}{code})")
-    return Fault(FaultKind.DRIVE_STOPPED.value, axis.name, k,
+        return Fault(FaultKind.DRIVE_FAULT, axis.name, k, f"axis {axis.name}: drive fault ({power.value}, "
+                     f"statusword 0x{axis.statusword:04X}{code})")
+    return Fault(FaultKind.DRIVE_STOPPED, axis.name, k,
                  f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
 
 
@@ -174,7 +170,7 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
     if last is None:
         ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
-    jump = position_jump(ch.jump, pos, lim.max_jump, getattr(ch.axis, "lost_cycles", 0) > 0)
+    jump = position_jump(ch.jump, pos, lim.max_jump, ch.axis.lost_cycles > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "

@@ -10,6 +10,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +22,17 @@ from drivectl.profiles.base import Reference
 
 if TYPE_CHECKING:
     from drivectl.controllers.runtime.loop import AxisRuntime, ServoLoop
+
+
+class MoveStatus(StrEnum):
+    """Where a command given to the loop stands (a str: messages and traces read the value)."""
+
+    PENDING = "pending"  # not yet taken by the loop
+    MOVING = "moving"
+    SETTLING = "settling"  # the reference arrived, the axis is getting into position
+    DONE = "done"
+    STOPPED = "stopped"  # replaced by another command, stopped, or the axis disabled
+    FAULT = "fault"
 
 
 class MotionFault(RuntimeError):
@@ -44,7 +56,7 @@ class Move:
         self.axis = axis
         self.kind = kind
         self.target = target
-        self.status = "pending"
+        self.status = MoveStatus.PENDING
         self.detail = ""
         self.fault: Fault | None = None
         self.position: float | None = None
@@ -67,7 +79,8 @@ class Move:
     def done(self) -> bool:
         return self._done.is_set()
 
-    def finish(self, status: str, rt: AxisRuntime | None = None, detail: str = "", fault: Fault | None = None) -> None:
+    def finish(self, status: MoveStatus, rt: AxisRuntime | None = None, detail: str = "",
+               fault: Fault | None = None) -> None:
         """The loop's side: the command ended (``status``), ``rt`` where the axis stood; once only."""
         if self._done.is_set():
             return
@@ -95,7 +108,7 @@ class Move:
             within = f"within {timeout:g} s" if timeout is not None else "while waiting"
             raise TimeoutError(f"axis {self.axis}: {self.kind} not done {within} (status {self.status})")
         self.close_record()
-        if self.status == "fault":
+        if self.status == MoveStatus.FAULT:
             raise MotionFault(f"axis {self.axis}: {self.kind} ended in a fault: {self.detail}", self.fault)
         return self
 

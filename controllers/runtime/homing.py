@@ -24,6 +24,7 @@ import threading
 from dataclasses import dataclass, replace
 from typing import Any
 
+from drivectl.errors import DrivectlError
 from drivectl.plant_emulator.brake import BrakeSpec
 
 METHODS = ("here", "switch", "hard-stop")
@@ -32,7 +33,7 @@ INPUT_BITS = {"negative-limit": 0, "positive-limit": 1, "home": 2}
 DIGITAL_INPUTS = 0x60FD
 
 
-class HomingError(RuntimeError):
+class HomingError(DrivectlError, RuntimeError):
     """Homing could not find its reference (switch not found within max_travel_m, ...)."""
 
 
@@ -165,21 +166,18 @@ def parse_emulator_io(src: str, key: str, raw: Any) -> EmulatorIO | None:
 # -- the procedures ------------------------------------------------------------------------------------------
 def read_inputs(machine: Any, axis: Any) -> int:
     """0x60FD of the drive: from the emulated drive model without a bus, else by SDO."""
-    hw = axis._rt.ch.axis
-    if hasattr(hw, "read_digital_inputs"):
-        return machine._bus(hw.read_digital_inputs)
-    return int(machine._bus(lambda: hw.node.sdo[DIGITAL_INPUTS].raw))
+    return machine._bus(axis._rt.ch.axis.read_digital_inputs)
 
 
 def home(machine: Any, axis: Any) -> Any:
     """Home ``axis`` (an AxisControl) by its configuration; returns the finished homing's Move handle
     (lockstep: at once; wall clock: the homing runs in a helper thread, the handle ends when it does)."""
-    from drivectl.controllers.runtime.handles import Move
+    from drivectl.controllers.runtime.handles import Move, MoveStatus
 
     cfg = machine.config.axis(axis.name).homing or HomingConfig()
     axis._require_enabled("home")
     handle = Move(machine.loop, axis.name, f"home ({cfg.method})", cfg.position)
-    handle.status = "moving"
+    handle.status = MoveStatus.MOVING
 
     def procedure() -> None:
         rt = axis._rt
@@ -192,12 +190,12 @@ def home(machine: Any, axis: Any) -> Any:
             else:
                 _home_hard_stop(machine, axis, cfg)
             handle.settled = True
-            handle.finish("done", rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
+            handle.finish(MoveStatus.DONE, rt, f"homed by {cfg.method}: offset {rt.offset * 1e3:+.6f} mm")
         except Exception as exc:  # noqa: BLE001 - the handle carries it to whoever waits
             from drivectl.controllers.runtime.handles import MotionFault
 
             fault = getattr(exc, "fault", None)
-            handle.finish("fault", rt, str(exc), fault if fault is not None else None)
+            handle.finish(MoveStatus.FAULT, rt, str(exc), fault if fault is not None else None)
             handle.error = exc  # type: ignore[attr-defined]
             if not isinstance(exc, MotionFault | HomingError):
                 raise
@@ -233,6 +231,8 @@ def _restore(machine: Any, axis: Any, limits: Any) -> None:
 
 def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float, what: str) -> float:
     """Jog at ``velocity`` (renewed) until ``found()``; returns the position at that cycle."""
+    from drivectl.controllers.runtime.handles import MoveStatus
+
     loop = machine.loop
     start = axis.position
     rt = axis._rt
@@ -244,7 +244,7 @@ def _search(machine: Any, axis: Any, velocity: float, found: Any, travel: float,
             rt.traj.move_to(rt.traj.position + math.copysign(travel, velocity), abs(velocity))
 
     loop.submit(retarget)
-    machine.run_until(lambda: jog.status != "pending" or jog.done, 5.0)  # taken by the loop (wall clock)
+    machine.run_until(lambda: jog.status != MoveStatus.PENDING or jog.done, 5.0)  # taken by the loop (wall clock)
     while True:
         if found():
             pos = axis.position
@@ -282,6 +282,8 @@ def _home_switch(machine: Any, axis: Any, cfg: HomingConfig) -> None:
 
 
 def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
+    from drivectl.controllers.runtime.handles import MoveStatus
+
     lim = axis._rt.ch.limits
     window = max(lim.following_error, 2 * cfg.hard_stop_error)
     old = _with_limits(machine, axis, position=None, following_error=window,
@@ -295,7 +297,7 @@ def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
         def hold() -> None:  # the reference back to where the axis stands: the push ends
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h.finish("stopped", rt, "hard stop found")
+                h.finish(MoveStatus.STOPPED, rt, "hard stop found")
             rt.jog_until = 0
             rt.traj.hold(rt.position)
             rt.ch.controller.reset()

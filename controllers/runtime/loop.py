@@ -59,7 +59,7 @@ from drivectl.controllers.runtime.cycle import (
     control,
     sample_axis,
 )
-from drivectl.controllers.runtime.handles import MotionFault, Move, ProfileRun
+from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, ProfileRun
 from drivectl.controllers.runtime.host import (
     release_blas,
     release_gc,
@@ -70,7 +70,7 @@ from drivectl.controllers.runtime.host import (
 )
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
-from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
+from drivectl.controllers.runtime.safe_stop import drive_error_code, quietly, stop_channels
 from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
 from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
@@ -250,8 +250,8 @@ class ServoLoop:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
             axis = rt.ch.axis
-            if axis.power in _ENABLED and hasattr(axis, "refresh_state"):
-                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive by SDO
+            if axis.power in _ENABLED:
+                quietly(axis.refresh_state)  # the TPDOs did not confirm it: ask the drive (by SDO on a bus)
             states[rt.name] = axis.power.value
         return states
 
@@ -316,11 +316,11 @@ class ServoLoop:
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
             except AxisError as exc:  # a write that failed (bus error): a fault like any other
-                self._fault(Fault(exc.kind.value if exc.kind else "axis error", self._axis_named(exc), k, str(exc)),
+                self._fault(Fault(exc.kind or FaultKind.AXIS_ERROR, self._axis_named(exc), k, str(exc)),
                             StopReason.FAULT)
             except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
-                self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
-                                  f"{exc}"), StopReason.FAULT)
+                self._fault(Fault(FaultKind.LOOP_ERROR, self._rts[0].name, k,
+                                  f"the servo loop raised {type(exc).__name__}: {exc}"), StopReason.FAULT)
             self.cycle += 1  # (a stop's own cycles were counted as they ran)
 
     def _axis_named(self, exc: Exception) -> str:
@@ -350,8 +350,7 @@ class ServoLoop:
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u
         rt.following_error = ref.position - pos
         ax = ch.axis
-        rt.ring.push(k, ref.position, pos, u, fb.velocity, getattr(ax, "torque_actual", math.nan),
-                     getattr(ax, "statusword", 0))
+        rt.ring.push(k, ref.position, pos, u, fb.velocity, ax.torque_actual, ax.statusword)
         if run is not None and run.k < run.n:
             i = run.k
             r = run.rows
@@ -387,8 +386,7 @@ class ServoLoop:
         ax.write(0.0)
         pos = fb.position - rt.offset
         rt.position, rt.velocity, rt.reference, rt.effort, rt.following_error = pos, fb.velocity, pos, 0.0, 0.0
-        rt.ring.push(k, pos, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
-                     getattr(ax, "statusword", 0))
+        rt.ring.push(k, pos, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
         if rt.captures:
             self._captures(rt, k)
         if rt.state is AxisState.ENABLING:
@@ -414,8 +412,8 @@ class ServoLoop:
     def _progress(self, rt: AxisRuntime) -> None:
         """Has the current command ended? (a move: reference arrived and in position, or timed out)."""
         h = rt.handle
-        if h.status == "pending":
-            h.status = "moving"
+        if h.status == MoveStatus.PENDING:
+            h.status = MoveStatus.MOVING
         h.cycles += 1
         if rt.run is not None:
             run = rt.run
@@ -424,15 +422,16 @@ class ServoLoop:
             rt.traj.hold(run.refs[0][run.n - 1])
             rt.run = None
             h._run = run
-            h.status = "settling"
+            h.status = MoveStatus.SETTLING
         if h.kind == "jog":
             if rt.traj.arrived:  # stopped by the dead man or stop()
                 rt.handle = None
-                h.finish("stopped" if h.status != "done" else "done", rt, "jog ended (not renewed or stopped)")
+                h.finish(MoveStatus.STOPPED if h.status != MoveStatus.DONE else MoveStatus.DONE, rt,
+                         "jog ended (not renewed or stopped)")
             return
         if not rt.traj.arrived:
             return
-        h.status = "settling"
+        h.status = MoveStatus.SETTLING
         m = rt.motion
         if abs(rt.traj.target - rt.position) <= m.in_position:
             h._in_position += 1
@@ -445,7 +444,7 @@ class ServoLoop:
             return
         rt.handle = None
         then, h._then = h._then, None
-        h.finish("done", rt, "" if h.settled else
+        h.finish(MoveStatus.DONE, rt, "" if h.settled else
                f"not within {m.in_position * 1e6:g} um of the target {m.settle_timeout:g} s after the reference "
                f"arrived (error {(rt.traj.target - rt.position) * 1e6:+.2f} um)")
         if then is not None:
@@ -494,7 +493,7 @@ class ServoLoop:
                 rt.fault = fault
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
-                h.finish("fault", rt, fault.detail, fault)
+                h.finish(MoveStatus.FAULT, rt, fault.detail, fault)
 
     def _stop_cycle(self, samples: Mapping[str, Feedback | None]) -> None:
         """One cycle of a stop (controllers/runtime/safe_stop.py): every axis's sample into its ring, so a
@@ -507,8 +506,7 @@ class ServoLoop:
                 continue
             ax = rt.ch.axis
             pos = fb.position - rt.offset
-            rt.ring.push(k, rt.reference, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
-                         getattr(ax, "statusword", 0))
+            rt.ring.push(k, rt.reference, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
             if rt.captures:
                 self._captures(rt, k)
 
@@ -539,7 +537,7 @@ class ServoLoop:
         rt.jog_until = 0
         if rt.handle is not None:
             h, rt.handle = rt.handle, None
-            h.finish("stopped", rt, why)
+            h.finish(MoveStatus.STOPPED, rt, why)
 
     # -- wall clock -------------------------------------------------------------------------------------
     def _thread_main(self) -> None:
@@ -638,7 +636,7 @@ class ServoLoop:
             return
         self.stalls += 1
         servo = min(over, key=self.bound_of)
-        fault = Fault(FaultKind.LOOP_STALLED.value, servo.name, servo.servo_k,
+        fault = Fault(FaultKind.LOOP_STALLED, servo.name, servo.servo_k,
                       f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
                       f"(bound {self.bound_of(servo) * 1e3:g} ms)")
         with self.io_lock:
@@ -699,11 +697,7 @@ _ENABLED = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE)
 
 def drive_error(axis: Axis) -> tuple[int, str] | None:
     """The drive's 0x603F (code, text), read by SDO where the axis can, else its last EMCY."""
-    code = None
-    if hasattr(axis, "read_error_code"):
-        code = quietly(axis.read_error_code)
-    if code is None and getattr(axis, "last_emcy", None):
-        code = axis.last_emcy[0]
+    code = drive_error_code(axis)
     if code is None:
         return None
     return int(code), error_text(int(code))

@@ -18,35 +18,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import ruckig
 
+from drivectl.controllers.base import Settings, param
 from drivectl.profiles.base import Reference
 
 
 @dataclass(frozen=True)
-class MotionLimits:
+class MotionLimits(Settings):
     """How an axis may move when drivectl generates the move (``[axes.NAME.motion]``)."""
 
-    max_velocity: float = 0.1  # m/s
-    max_acceleration: float = 1.0  # m/s^2
-    max_jerk: float = 50.0  # m/s^3
-    jog_deadman: float = 0.2  # s: a jog not renewed within this stops by itself
-    in_position: float = 1e-6  # m: a move has settled when |target - position| stays within this ...
-    in_position_time: float = 0.01  # s: ... for this long
-    settle_timeout: float = 1.0  # s after the reference arrived: the move ends unsettled (reported so)
+    where: ClassVar[str] = "motion"
 
-    def __post_init__(self) -> None:
-        for name in ("max_velocity", "max_acceleration", "max_jerk", "jog_deadman", "in_position"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"motion: {name}: must be a finite number > 0, got {value!r}")
-        for name in ("in_position_time", "settle_timeout"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"motion: {name}: must be a finite number >= 0, got {value!r}")
+    max_velocity: float = param(0.1, lo=0.0, lo_open=True, unit="m/s")
+    max_acceleration: float = param(1.0, lo=0.0, lo_open=True, unit="m/s^2")
+    max_jerk: float = param(50.0, lo=0.0, lo_open=True, unit="m/s^3")
+    jog_deadman: float = param(0.2, lo=0.0, lo_open=True, unit="s", doc="a jog not renewed within this stops by itself")
+    in_position: float = param(1e-6, lo=0.0, lo_open=True, unit="m",
+                               doc="a move has settled when |target - position| stays within this ...")
+    in_position_time: float = param(0.01, lo=0.0, unit="s", doc="... for this long")
+    settle_timeout: float = param(1.0, lo=0.0, unit="s",
+                                  doc="after the reference arrived: the move ends unsettled (reported so)")
 
 
 #: configuration keys of [axes.NAME.motion] -> MotionLimits fields

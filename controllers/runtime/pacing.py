@@ -52,9 +52,7 @@ class Pacer:
 
 
 def pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None) -> None:
-    """Tell each axis that a paced run starts on ``wall`` (None: it ended); axes without drives of their
-    own clock in this process (SimAxis) have no ``pace``."""
+    """Tell each axis that a paced run starts on ``wall`` (None: it ended); an axis without drives of their
+    own clock in this process (SimAxis) has nothing to do (driver/axis.py)."""
     for ch in channels:
-        pace = getattr(ch.axis, "pace", None)
-        if pace is not None:
-            pace(wall)
+        ch.axis.pace(wall)

@@ -64,7 +64,7 @@ class Recording:
         n = plan.cycles if plan.keep else 0
         self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
         self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
-        self._counters0 = [dict(getattr(ch.axis, "counters", {})) for ch in plan.channels]
+        self._counters0 = [dict(ch.axis.counters) for ch in plan.channels]
         self._head = [self._head_meta(ch, paced) for ch in plan.channels]
         self.writers: list = []
         if stream is not None:
@@ -135,7 +135,7 @@ class Recording:
                 meta["stop_detail"] = out.detail
             if ch.clipped:
                 meta["effort_clipped_cycles"] = str(ch.clipped)
-            for key, value in getattr(ch.axis, "counters", {}).items():
+            for key, value in ch.axis.counters.items():
                 meta[key] = str(value - self._counters0[i].get(key, 0))
             if out.fault is not None:
                 meta.update(out.fault.meta())

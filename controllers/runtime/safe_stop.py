@@ -57,14 +57,15 @@ class AxisStop:
         if self.confirmed_after is not None:
             by = f" (reported by {self.source}{steps})" if self.source and steps else ""
             return f"{axis.power.value}{by}"
-        last = (f"it last reported {axis.power.value} by {getattr(axis, 'state_source', '') or 'its transport'}"
-                if getattr(axis, "state_fresh", False) else "no confirmed report from the drive")
+        # a report names its transport (TPDO, SDO); an axis without one (SimAxis) confirmed nothing to report
+        last = (f"it last reported {axis.power.value} by {axis.state_source}"
+                if axis.state_fresh and axis.state_source else "no confirmed report from the drive")
         return f"{MAY_BE_POWERED}: {last}; tried {', '.join(self.tried)}"
 
 
 def confirmed(axis: Axis) -> bool:
     """The drive itself reported a safe state (SimAxis: its model is the plant, always current)."""
-    return axis.power in SAFE_STATES and getattr(axis, "state_fresh", True)
+    return axis.power in SAFE_STATES and axis.state_fresh
 
 
 def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: str | None = None,
@@ -86,12 +87,12 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: s
             st = stops[ax.name]
             if st.confirmed_after is None and confirmed(ax):
                 st.confirmed_after = cycles
-                st.source = getattr(ax, "state_source", "")
+                st.source = ax.state_source
 
     mark(0)
     # what the master knows does not reach the drive by RPDO: escalate these at once
     for ax in axes:
-        kind = getattr(ax, "foreign_kind", None)
+        kind = getattr(ax, "foreign_kind", None)  # declared on Axis; getattr: duck-typed stand-ins (tests) lack it
         if kind is None and ax.name == fault_axis and fault_kind in (FaultKind.ROGUE_RPDO.value,
                                                                      FaultKind.FOREIGN_NMT.value):
             kind = FaultKind(fault_kind)
@@ -128,14 +129,17 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: s
 
 
 def _sdo_quick_stop(st: AxisStop, ax: Axis) -> None:
-    if hasattr(ax, "sdo_quick_stop") and "quick stop by SDO" not in st.tried:
+    if "quick stop by SDO" not in st.tried:
         _attempt(st, "quick stop by SDO", ax.sdo_quick_stop)
 
 
 def _nmt_stop(st: AxisStop, ax: Axis, always: bool = False) -> None:
-    if not hasattr(ax, "nmt_stop") or any(t.startswith("NMT Stop") for t in st.tried):
+    if any(t.startswith("NMT Stop") for t in st.tried):
         return
-    option = ax.abort_connection_option() if not always else quietly(ax.abort_connection_option)
+    try:
+        option = ax.abort_connection_option() if not always else quietly(ax.abort_connection_option)
+    except NotImplementedError:
+        return  # no NMT on this transport
     if not always and option not in (1, 2, 3, None):
         st.tried.append(f"no NMT Stop (0x6007 = {option}: the drive would not stop on it)")
         return
@@ -145,9 +149,9 @@ def _nmt_stop(st: AxisStop, ax: Axis, always: bool = False) -> None:
 
 
 def _last_resort(st: AxisStop, ax: Axis) -> None:
-    if not hasattr(ax, "last_resort"):
+    action = ax.last_resort_action
+    if action is None:  # the transport has no last resort
         return
-    action = getattr(ax, "last_resort_action", "none")
     if action == "none":
         st.tried.append("no last resort configured (last_resort = \"none\")")
         return
@@ -157,6 +161,8 @@ def _last_resort(st: AxisStop, ax: Axis) -> None:
 def _attempt(st: AxisStop, what: str, fn: Callable[[], object]) -> bool:
     try:
         fn()
+    except NotImplementedError:
+        return False  # the transport has no such step (driver/axis.py): nothing was tried
     except Exception as exc:  # noqa: BLE001 - stopping goes on whatever one call raises
         reason = str(exc).split(": ")[-1] or type(exc).__name__
         st.tried.append(f"{what} (failed: {reason})")
@@ -179,13 +185,21 @@ def _stop_cycle(axes: Sequence[Axis], on_cycle: Callable[[dict[str, Feedback | N
             pass  # no sample (TPDOs gone): asked by SDO below
         except Exception:  # noqa: BLE001 - a dead transport: the others must still be stopped
             pass
-        if not getattr(axis, "state_fresh", True) and hasattr(axis, "refresh_state"):
+        if not axis.state_fresh:
             if quietly(axis.refresh_state) is not None:
                 alive = True
         quietly(axis.write, 0.0)
     if on_cycle is not None:
         quietly(on_cycle, samples)
     return alive
+
+
+def drive_error_code(axis: Axis) -> int | None:
+    """The drive's 0x603F: read where the axis can (by SDO on a bus), else its last EMCY's; None: unknown."""
+    code = quietly(axis.read_error_code)
+    if code is None and axis.last_emcy:
+        code = axis.last_emcy[0]
+    return code  # type: ignore[return-value]
 
 
 def quietly(fn: Callable[..., object], *args: object) -> object:
@@ -210,12 +224,10 @@ def stop_channels(channels: Sequence[Channel], fault: Fault | None = None,
             fault.safe_state[ax.name] = st.safe_state(ax)
         faulted = next((ax for ax in axes if ax.name == fault.axis), None)
         if faulted is not None:
-            fault.statusword = getattr(faulted, "statusword", None)
-            code = quietly(faulted.read_error_code) if hasattr(faulted, "read_error_code") else None
-            if code is None and getattr(faulted, "last_emcy", None):
-                code = faulted.last_emcy[0]
+            fault.statusword = faulted.statusword
+            code = drive_error_code(faulted)
             fault.error_code = code
-            if code and fault.kind == FaultKind.DRIVE_STOPPED.value:  # why the drive stopped, in its own words
+            if code and fault.kind is FaultKind.DRIVE_STOPPED:  # why the drive stopped, in its own words
                 fault.detail += f" (its 0x603F: 0x{code:04X}: {error_text(code)})"
 
 

@@ -46,10 +46,11 @@ from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.safe_stop import stop_channels
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState
+from drivectl.errors import InputError
 from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
 
 
-class LimitError(ValueError):
+class LimitError(InputError):
     """A run was refused before anything moved (profile outside limits, axis not at the start)."""
 
 
@@ -304,7 +305,7 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
     except (_Interrupted, KeyboardInterrupt):
         out.stop = StopReason.INTERRUPTED
         out.detail = f"interrupted ({request.name or 'KeyboardInterrupt'})"
-        out.fault = Fault("interrupted", channels[0].axis.name, k, out.detail)
+        out.fault = Fault(FaultKind.INTERRUPTED, channels[0].axis.name, k, out.detail)
         if out.started:
             stop_channels(channels, out.fault)
         else:
@@ -314,7 +315,7 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 out.fault.safe_state[ch.axis.name] = ch.axis.power.value
     except AxisError as exc:  # raised by the bring-up or by a write
         out.stop, out.detail = (StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR), str(exc)
-        out.fault = Fault(exc.kind.value if exc.kind else "axis error", _axis_of(exc, channels), k, out.detail)
+        out.fault = Fault(exc.kind or FaultKind.AXIS_ERROR, _axis_of(exc, channels), k, out.detail)
         stop_channels(channels, out.fault)
     finally:
         if bar is not None:

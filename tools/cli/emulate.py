@@ -28,12 +28,16 @@ from typing import TYPE_CHECKING, Any
 import can
 import canopen
 
+from drivectl.errors import InputError
+
 if TYPE_CHECKING:
     from drivectl.controllers.runtime.interrupt import StopRequest
 
 
 def add_emulate_parser(sub: Any) -> None:
     from drivectl.driver.network import INTERFACES
+    from drivectl.plant_emulator.effects import EFFECTS
+    from drivectl.plant_emulator.faults import KINDS
 
     e = sub.add_parser("emulate", help="run the machine's emulated drives on a bus until stopped",
                        description=__doc__.split("\n\n")[0] + " " + __doc__.split("\n\n")[1].replace("\n", " "))
@@ -51,14 +55,15 @@ def add_emulate_parser(sub: Any) -> None:
                    help="--socketcand: close a client that took none of the frames waiting for it for S seconds "
                    "(dead or hung; default 30; 0: never)")
     e.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
-                   help="add a physical effect to every emulated plant (repeatable)")
+                   help=f"add a physical effect to every emulated plant (repeatable; effects: {', '.join(EFFECTS)})")
     e.add_argument("--plant", help="override the plants (built-in name or TOML file)")
     e.add_argument("--noise", type=float, default=0.0, help="force noise std (effort units)")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--bus-log", metavar="FILE", help="record every frame, sent and received, stamped on the host's "
                    "clock (python-can Logger, format by suffix: .asc, .blf, .log, .csv, .trc)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
-                   help="inject a fault TIME s after the drive is enabled (repeatable; see docs/faults.md)")
+                   help=f"inject a fault TIME s after the drive is enabled (repeatable; kinds: {', '.join(KINDS)}; "
+                   "see docs/faults.md)")
     e.add_argument("--eds", metavar="FILE", help="the drive impersonates this EDS (its objects, limits, PDO rules, "
                    "modes, identity; default: each axis's eds key, else drivectl's own emulated drive)")
     e.add_argument("--boot-delay-ms", type=float, default=None, metavar="MS",
@@ -68,7 +73,7 @@ def add_emulate_parser(sub: Any) -> None:
                         "heartbeat consumer time, 300 ms; about two cycles for a master paced in real time)")
 
 
-class EmulateArgError(ValueError):
+class EmulateArgError(InputError):
     """A value given to ``drivectl emulate`` is unusable: one line naming the flag, exit 2."""
 
 

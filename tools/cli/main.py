@@ -17,16 +17,68 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from importlib import import_module
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from drivectl import __version__
+from drivectl.errors import EXIT_BAD_INPUT, EXIT_FAULT, EXIT_OK, EXIT_STOPPED, EXIT_WARNINGS
+from drivectl.tools.cli.exits import exits_on_error
 
 if TYPE_CHECKING:
     from drivectl.controllers.runtime.interrupt import StopRequest
 
-EXIT_OK, EXIT_STOPPED, EXIT_BAD_INPUT, EXIT_FAULT, EXIT_WARNINGS = 0, 1, 2, 3, 4
+
+@dataclass(frozen=True)
+class Command:
+    """One `drivectl` command: where its parser and its handler live (``module:function``, imported when
+    used so the CLI starts fast) and whether it talks to drives."""
+
+    name: str
+    parser: str  # adds the command's parser (one function may add a group of commands)
+    run: str  # args -> exit code
+    #: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into the bus I/O
+    #: (drivectl.controllers.runtime.interrupt); elsewhere (tune's search, explain, plot) they end at once
+    talks_to_drives: bool = False
+
+
+_HERE = "drivectl.tools.cli.main"
+_COMMISSION = "drivectl.tools.commissioning.commands"
+#: every command, in the order `drivectl --help` lists them
+COMMANDS: tuple[Command, ...] = (
+    Command("trace", f"{_HERE}:add_trace_parser", f"{_HERE}:cmd_trace", True),
+    Command("config", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_config"),
+    Command("scan", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_scan", True),
+    Command("status", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_status", True),
+    Command("enable", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_power", True),
+    Command("disable", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_power", True),
+    Command("fault-reset", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_power", True),
+    Command("identify", f"{_COMMISSION}:add_commission_parsers", f"{_COMMISSION}:cmd_identify", True),
+    Command("bode", "drivectl.tools.commissioning.bode:add_bode_parser", "drivectl.tools.commissioning.bode:cmd_bode",
+            True),
+    Command("tune", "drivectl.tools.commissioning.tune:add_tune_parser", "drivectl.tools.commissioning.tune:cmd_tune"),
+    Command("emulate", "drivectl.tools.cli.emulate:add_emulate_parser", "drivectl.tools.cli.emulate:cmd_emulate",
+            True),
+    Command("explain", "drivectl.tools.explain.core:add_explain_parser", "drivectl.tools.explain.core:cmd_explain"),
+    Command("conformance", "drivectl.tools.conformance.suite:add_conformance_parser",
+            "drivectl.tools.conformance.suite:cmd_conformance"),
+    Command("shell", "drivectl.tools.cli.shell:add_shell_parser", "drivectl.tools.cli.shell:cmd_shell"),
+    Command("ui", "drivectl.tools.ui.command:add_ui_parser", "drivectl.tools.ui.command:cmd_ui"),
+    Command("doctor", "drivectl.tools.cli.doctor:add_doctor_parser", "drivectl.tools.cli.doctor:cmd_doctor", True),
+    Command("drive", "drivectl.tools.cli.drive:add_drive_parser", "drivectl.tools.cli.drive:cmd_drive", True),
+    Command("plot", f"{_HERE}:add_plot_parser", f"{_HERE}:cmd_plot"),
+    Command("summary", f"{_HERE}:add_summary_parser", f"{_HERE}:cmd_summary"),
+)
+_BY_NAME = {c.name: c for c in COMMANDS}
+#: commands that talk to drives (see Command.talks_to_drives)
+TALKS_TO_DRIVES = tuple(c.name for c in COMMANDS if c.talks_to_drives)
+
+
+def _resolve(ref: str) -> Callable:
+    module, _, name = ref.partition(":")
+    return getattr(import_module(module), name)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,6 +91,18 @@ def build_parser() -> argparse.ArgumentParser:
                    "else the embedded emulated machine)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
+    added = set()
+    for c in COMMANDS:
+        if c.parser not in added:  # a group's function adds all of its commands at once
+            added.add(c.parser)
+            _resolve(c.parser)(sub)
+    return p
+
+
+def add_trace_parser(sub: argparse._SubParsersAction) -> None:
+    from drivectl.controllers.registry import CONTROLLERS
+    from drivectl.plant_emulator.effects import EFFECTS
+    from drivectl.plant_emulator.faults import KINDS
 
     t = sub.add_parser("trace", help="run an axis through its profile and record a trace + plot",
                        description="Run the axis's profile under its controller on the configured bus "
@@ -50,10 +114,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "file; also the controller's model unless --model or the axis's model key says otherwise)")
     t.add_argument("--model", metavar="NAME|FILE", help="the plant the controller believes (built-in name or TOML "
                    "file, e.g. from identify or explain; default: the axis's model key, else the plant)")
-    t.add_argument("--controller", help="override the axis's controller (smc, vprl, pid-nftsm, asmc, pid, pid-dob)")
+    t.add_argument("--controller", help=f"override the axis's controller ({', '.join(CONTROLLERS)})")
     t.add_argument("--profile", help="override the axis's profile (library name or TOML file)")
     t.add_argument("--effect", action="append", default=[], metavar="NAME:k=v,...",
-                   help="add a physical effect to the simulated plant, e.g. backlash:width=20e-6 (repeatable)")
+                   help="add a physical effect to the simulated plant, e.g. backlash:width=20e-6 (repeatable; "
+                   f"effects: {', '.join(EFFECTS)})")
     t.add_argument("--duration", type=float, help="run length in s (default: the profile's)")
     t.add_argument("--noise", type=float, default=0.0, metavar="EFFORT",
                    help="std of a Gaussian force noise on the plant, in the effort unit (default 0)")
@@ -73,56 +138,23 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--quiet", action="store_true", help="no progress bar")
     t.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault into the emulated drive (virtual bus) TIME s after it is enabled, e.g. "
-                   "emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: see docs/faults.md)")
+                   f"emcy-fault@0.5, tpdo-lost:cycles=10@1, bus-off@2 (repeatable; kinds: {', '.join(KINDS)}; "
+                   "see docs/faults.md)")
     from drivectl.tools.commissioning.learn import add_learning_arguments
 
     add_learning_arguments(t)
 
-    from drivectl.tools.cli.emulate import add_emulate_parser
-    from drivectl.tools.commissioning.bode import add_bode_parser
-    from drivectl.tools.commissioning.commands import add_commission_parsers
-    from drivectl.tools.explain.core import add_explain_parser
 
-    add_commission_parsers(sub)
-    add_bode_parser(sub)
-    from drivectl.tools.commissioning.tune import add_tune_parser
-
-    add_tune_parser(sub)
-    add_emulate_parser(sub)
-    add_explain_parser(sub)
-    from drivectl.tools.conformance.suite import add_conformance_parser
-
-    add_conformance_parser(sub)
-    from drivectl.tools.cli.shell import add_shell_parser
-
-    add_shell_parser(sub)
-    from drivectl.tools.ui.command import add_ui_parser
-
-    add_ui_parser(sub)
-    from drivectl.tools.cli.doctor import add_doctor_parser
-
-    add_doctor_parser(sub)
-    from drivectl.tools.cli.drive import add_drive_parser
-
-    add_drive_parser(sub)
-    from drivectl.tools.cli.doctor_drive import add_doctor_parser as add_drive_doctor
-
-    add_drive_doctor(sub)  # the drive section as `doctor`, unless a fuller doctor registered that name first
-
+def add_plot_parser(sub: argparse._SubParsersAction) -> None:
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
     pl.add_argument("--out", metavar="PNG", help="output PNG (default: beside the first trace)")
 
+
+def add_summary_parser(sub: argparse._SubParsersAction) -> None:
     su = sub.add_parser("summary", help="tracking error, energy and chattering of trace files")
     su.add_argument("traces", nargs="+", metavar="TRACE.csv")
     su.add_argument("--json", action="store_true", help="one JSON object on stdout")
-    return p
-
-
-#: commands that talk to drives: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into
-#: the bus I/O (drivectl.controllers.runtime.interrupt); elsewhere (tune's search, explain, plot) they end at once
-TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate",
-                   "drive", "doctor")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -147,83 +179,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+@exits_on_error  # a drivectl error ends the command with the code its class carries (drivectl/errors.py)
 def _dispatch(args: argparse.Namespace) -> int:
-    from drivectl.controllers.base import SettingsError
-    from drivectl.controllers.runtime.servo import LimitError
-    from drivectl.driver.axis import AxisConfigError, AxisError
-    from drivectl.machine.config import ConfigError
-    from drivectl.plant_emulator.faults import FaultSpecError
-    from drivectl.plant_emulator.models import PlantError
-    from drivectl.profiles.base import ProfileError
-    from drivectl.tools.commissioning.identify import IdentificationError
-    from drivectl.tools.commissioning.learn import LearnedFileError
-    from drivectl.tracefile.format import TraceError
-
-    bad_input = (ConfigError, PlantError, ProfileError, SettingsError, TraceError, LimitError, AxisConfigError,
-                 FaultSpecError, LearnedFileError)
     try:
-        if args.command == "trace":
-            return cmd_trace(args)
-        if args.command == "plot":
-            return cmd_plot(args)
-        if args.command in ("config", "scan", "status", "enable", "disable", "fault-reset", "identify"):
-            from drivectl.tools.commissioning import commands as commission
-
-            handler = {"config": commission.cmd_config, "scan": commission.cmd_scan,
-                       "status": commission.cmd_status, "identify": commission.cmd_identify}
-            return handler.get(args.command, commission.cmd_power)(args)
-        if args.command == "tune":
-            from drivectl.tools.commissioning.tune import cmd_tune
-
-            return cmd_tune(args)
-        if args.command == "bode":
-            from drivectl.tools.commissioning.bode import cmd_bode
-
-            return cmd_bode(args)
-        if args.command == "explain":
-            from drivectl.tools.explain.core import cmd_explain
-
-            return cmd_explain(args)
-        if args.command == "emulate":
-            from drivectl.tools.cli.emulate import cmd_emulate
-
-            return cmd_emulate(args)
-        if args.command == "conformance":
-            from drivectl.tools.conformance.suite import cmd_conformance
-
-            return cmd_conformance(args)
-        if args.command == "shell":
-            from drivectl.tools.cli.shell import cmd_shell
-
-            return cmd_shell(args)
-        if args.command == "ui":
-            from drivectl.tools.ui.command import cmd_ui
-
-            return cmd_ui(args)
-        if args.command == "summary":
-            return cmd_summary(args)
-        if getattr(args, "doctor_drive", False):
-            from drivectl.tools.cli.doctor_drive import cmd_doctor_drive
-
-            return cmd_doctor_drive(args)
-        if args.command == "drive":
-            from drivectl.tools.cli.drive import cmd_drive
-
-            return cmd_drive(args)
-        if args.command == "doctor":
-            from drivectl.tools.cli.doctor import cmd_doctor
-
-            return cmd_doctor(args)
-    except bad_input as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _resolve(_BY_NAME[args.command].run)(args)
     except NotImplementedError as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (AxisError, IdentificationError) as exc:  # the bus or a drive refused; the data cannot be fitted
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return EXIT_STOPPED
-    return EXIT_BAD_INPUT
 
 
 # --------------------------------------------------------------------------------------------------
@@ -318,8 +280,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                 meta["injected"] = "; ".join(str(f) for f in faults)
             axis = machine.axes[name]
             # limits the configuration leaves out come from the drive (0x6065/0x6066, 0x607D)
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, controllers[name], profiles[name], limits, meta))
     except BaseException:
         machine.close()

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 import re
 
+from drivectl.errors import InputError
+
 #: unit -> factor to SI, per kind of quantity
 UNITS: dict[str, dict[str, float]] = {
     "position": {"m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9},
@@ -22,7 +24,7 @@ EXAMPLE = {"position": "mm", "velocity": "mm/s", "time": "s"}
 _NUMBER_UNIT = re.compile(r"^\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*([^\s\d.+-][^\s]*)?\s*$")
 
 
-class QuantityError(ValueError):
+class QuantityError(InputError):
     """A value that is not a number with one of its kind's units."""
 
 

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
+from drivectl.errors import InputError
 from drivectl.tools.cli.quantity import QuantityError, format_position, parse_quantity
 
 #: how long a motion command waits for its end unless ``timeout=`` says otherwise (s, the loop's clock)
@@ -49,7 +50,7 @@ HELP = """commands (positions: m mm um nm; speeds: m/s mm/s um/s; times: s ms):
 a command ending in & returns at once; Ctrl-C stops every axis and keeps the session"""
 
 
-class ShellError(ValueError):
+class ShellError(InputError):
     """A command that cannot be carried out as typed: one line, the session goes on."""
 
 
@@ -378,8 +379,7 @@ class Shell(cmd.Cmd):
     def do_scan(self, arg: str) -> bool:
         for name, ax in self.m.axes.items():
             hw = self.m.hardware.axes[name]
-            ident = getattr(hw, "identity", None)
-            node = getattr(hw, "node_id", None)
+            ident, node = hw.identity, hw.node_id
             who = (f"node {node}, vendor 0x{ident.vendor_id:08X} product 0x{ident.product_code:08X}"
                    if ident is not None and node is not None else "no bus (SimAxis)")
             self.say(f"{name}: {who}, {ax.power.value}")

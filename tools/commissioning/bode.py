@@ -44,6 +44,7 @@ import numpy as np
 from drivectl.controllers.base import Controller
 from drivectl.machine.config import ConfigError, MachineConfig
 from drivectl.plant_emulator.models import PlantSpec
+from drivectl.tools.cli.exits import exits_on_error
 from drivectl.tools.commissioning.bode_excitation import BIAS_RAMP_S, BiasRamp, ExcitedController, Hold, multisine
 from drivectl.tools.commissioning.frf import BodeError, Mode, estimate_frf, find_mode, model_frf, model_modes
 from drivectl.tracefile.format import Trace, atomic_write_bytes, atomic_write_text
@@ -433,32 +434,22 @@ def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+@exits_on_error
 def cmd_bode(args: argparse.Namespace) -> int:
-    """0 done; 1 the loop was stopped by a limit or the axis failed; 2 bad input (one line on stderr)."""
-    from drivectl.controllers.base import SettingsError
-    from drivectl.controllers.runtime.servo import LimitError
-    from drivectl.driver.axis import AxisConfigError, AxisError
+    """0 done; 1 the loop was stopped by a limit or the axis failed; 2 bad input (one line on stderr; the
+    code each error carries, drivectl/errors.py)."""
     from drivectl.machine.config import load_config
-    from drivectl.plant_emulator.models import PlantError
+    from drivectl.tracefile.format import TraceError
+    from drivectl.tracefile.stream import check_output_folder
 
-    try:
-        from drivectl.tracefile.format import TraceError
-        from drivectl.tracefile.stream import check_output_folder
-
-        cfg = load_config(getattr(args, "config", None))
-        try:  # before the axis moves: the response goes there after the measurement
-            check_output_folder(args.out, "--out", 5_000_000)
-        except TraceError as exc:
-            raise ConfigError(str(exc)) from None
-        res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
-                          fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
-                          bias_velocity=args.bias_velocity)
-    except (BodeError, ConfigError, PlantError, SettingsError, LimitError, AxisConfigError) as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return 2
-    except AxisError as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return 1
+    cfg = load_config(getattr(args, "config", None))
+    try:  # before the axis moves: the response goes there after the measurement
+        check_output_folder(args.out, "--out", 5_000_000)
+    except TraceError as exc:
+        raise ConfigError(str(exc)) from None
+    res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
+                      fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
+                      bias_velocity=args.bias_velocity)
     if not res.ok:
         from drivectl.controllers.runtime.safe_stop import end_state_line
 

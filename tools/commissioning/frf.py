@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
+from drivectl.errors import InputError
 from drivectl.plant_emulator.models import Design, PlantSpec
 
 #: a peak of the accelerance must rise this much (dB) above its surroundings to be called a mode
@@ -42,7 +43,7 @@ MIN_COHERENCE = 0.5
 MODE_MAX_DAMPING = 0.3
 
 
-class BodeError(ValueError):
+class BodeError(InputError):
     """Bad input to the measurement (amplitude, band, seconds); one line."""
 
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.driver.axis import Axis
+from drivectl.errors import EXIT_STOPPED, DrivectlError
 from drivectl.tracefile.format import Trace
 
 #: constant speeds of the default run, m/s (5 .. 100 mm/s, as for paper 004's Fig. 2)
@@ -41,8 +42,10 @@ DEFAULT_SPEEDS = (0.005, 0.01, 0.02, 0.04, 0.07, 0.1)
 RIGID_KEYS = ("m", "c_pos", "c_neg", "fc_pos", "fc_neg")
 
 
-class IdentificationError(ValueError):
+class IdentificationError(DrivectlError, ValueError):
     """The data cannot support the fit (too few stretches, one direction missing...)."""
+
+    exit_code = EXIT_STOPPED  # the data cannot be fitted: the run happened, its result is refused
 
 
 # --------------------------------------------------------------------------------------------------

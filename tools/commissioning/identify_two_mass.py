@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from drivectl.errors import EXIT_STOPPED, DrivectlError
 from drivectl.plant_emulator.models import PlantSpec
 
 #: lines with a u-y coherence below this are not fitted
@@ -55,8 +56,10 @@ FIT_VECTOR = ("log_total_mass", "log_mode_hz", "logit_split", "log_n", "log_b2")
 REPORTED = ("m1", "m2", "k", "n", "b2", "total_mass", "mode_hz", "damping_ratio")
 
 
-class TwoMassError(ValueError):
+class TwoMassError(DrivectlError, ValueError):
     """The response cannot support the fit (too few coherent lines, no mode in the band)."""
+
+    exit_code = EXIT_STOPPED  # the run stopped or its response cannot be fitted, as IdentificationError
 
 
 def _unpack(theta: np.ndarray, b1: float) -> dict[str, float]:

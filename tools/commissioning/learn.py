@@ -57,6 +57,7 @@ import numpy as np
 from drivectl.controllers.base import Controller
 from drivectl.controllers.learning import LearnedFeedforward
 from drivectl.driver.axis import Feedback
+from drivectl.errors import InputError
 from drivectl.plant_emulator.models import PlantSpec
 from drivectl.profiles.base import Reference
 
@@ -80,7 +81,7 @@ START_RAMP_S = 0.005
 RESPONSE_PEAK_M = 5e-6
 
 
-class LearnedFileError(ValueError):
+class LearnedFileError(InputError):
     """A learned-correction file that does not fit the run; one line naming the file and the field."""
 
 
@@ -541,8 +542,7 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
             if effects:
                 meta["effects"] = "; ".join(f"{e}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for e, p in effects)
             axis = machine.axes[n]
-            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive and hasattr(
-                axis, "drive_limits") else ac.limits
+            limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, wrappers[n], schedules[n], limits, meta))
         result = run_channels(channels, stop_request=request)
     finally:

@@ -35,7 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from drivectl.errors import InputError
 from drivectl.machine.config import MachineConfig
+from drivectl.tools.cli.exits import exits_on_error
 from drivectl.tools.commissioning.tune_cost import (
     COST_TEXT,
     DEFAULT_WEIGHT,
@@ -67,7 +69,7 @@ TUNED_GAINS: dict[str, tuple[str, ...]] = {
 }
 
 
-class TuneError(ValueError):
+class TuneError(InputError):
     """A tune request cannot be served; one line."""
 
 
@@ -403,7 +405,7 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
         "metrics, runs one verification trace on the axis and prints predicted beside measured, and writes "
         "the gains as a TOML table.")
     p.add_argument("--axis", default="x", help="axis name (default x)")
-    p.add_argument("--controller", help="controller to tune (default the axis's)")
+    p.add_argument("--controller", help=f"controller to tune (default the axis's; {', '.join(TUNED_GAINS)})")
     p.add_argument("--candidates", type=int, default=200, help="gain sets simulated (default 200)")
     p.add_argument("--seconds", type=float, help="run length, s (default the profile's duration)")
     p.add_argument("--seed", type=int, default=0, help="seed of the quasi-random sample (default 0)")
@@ -427,50 +429,34 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+@exits_on_error
 def cmd_tune(args: argparse.Namespace) -> int:
     """Exit 0 done (the verification completed); 1 the verification run was stopped by a limit or the
-    axis; 2 bad input, with one line on stderr."""
-    from drivectl.controllers.base import SettingsError
-    from drivectl.controllers.runtime.servo import LimitError
-    from drivectl.driver.axis import AxisConfigError, AxisError
+    axis; 2 bad input, with one line on stderr (the code each error carries, drivectl/errors.py)."""
+    from drivectl.machine.build import with_model
     from drivectl.machine.config import ConfigError, load_config
-    from drivectl.plant_emulator.models import PlantError
-    from drivectl.profiles.base import ProfileError
     from drivectl.tracefile.format import atomic_write_text
 
-    try:
-        from drivectl.machine.build import with_model
+    cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
+    if args.out and Path(args.out).is_dir():  # before the search: the gains could not be written after it
+        raise ConfigError(f"tune: --out {args.out}: is a folder; give the TOML file to write "
+                          "(default traces/tune-AXIS.toml)")
+    if getattr(args, "write_config", None) is not None:  # before the search and the verification run
+        from drivectl.machine.config_io import target_file
 
-        cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
-        if args.out and Path(args.out).is_dir():  # before the search: the gains could not be written after it
-            raise ConfigError(f"tune: --out {args.out}: is a folder; give the TOML file to write "
-                              "(default traces/tune-AXIS.toml)")
-        if getattr(args, "write_config", None) is not None:  # before the search and the verification run
-            from drivectl.machine.config_io import target_file
-
-            args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
-        res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
-                   seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
-                   progress=sys.stderr.isatty(), corners=args.corners, spread=args.spread)
-    except (TuneError, ConfigError, SettingsError, PlantError, ProfileError, LimitError, AxisConfigError) as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return 2
-    except AxisError as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return 1
+        args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
+    res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
+               seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
+               progress=sys.stderr.isatty(), corners=args.corners, spread=args.spread)
     out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
     atomic_write_text(out, settings_toml(res))
     merged = ""
     if getattr(args, "write_config", None) is not None:  # machine/config_io.py: comments kept, old file backed up
         from drivectl.machine.config_io import merge_into, target_file
 
-        try:
-            target = target_file(args.write_config, getattr(args, "config", None))
-            backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
-                                note=f"tuned by drivectl tune ({res.candidates} candidates)")
-        except ConfigError as exc:
-            print(f"drivectl: {exc}", file=sys.stderr)
-            return 2
+        target = target_file(args.write_config, getattr(args, "config", None))
+        backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
+                            note=f"tuned by drivectl tune ({res.candidates} candidates)")
         merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
             f" (old file kept as {backup})" if backup else "")
     if args.json:

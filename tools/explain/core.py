@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from drivectl.plant_emulator.models import PlantError, PlantSpec, load_plant
+from drivectl.tools.cli.exits import exits_on_error
 from drivectl.tools.explain.data import (  # noqa: F401  (re-exported: the library's names)
     GAP_METRIC,
     ExplainError,
@@ -58,7 +59,7 @@ from drivectl.tools.explain.fit import (
     run_fitter,
 )
 from drivectl.tools.explain.report import format_report, locate, write_outputs
-from drivectl.tracefile.format import Trace, TraceError
+from drivectl.tracefile.format import Trace
 
 #: ranking: penalty per parameter on the squared gap (an information-criterion style charge: among
 #: candidates, one with one more free parameter must explain that much more of the squared gap to be
@@ -658,24 +659,22 @@ def add_explain_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+@exits_on_error
 def cmd_explain(args: argparse.Namespace) -> int:
-    """Exit 0 with a result (``none`` included); 2 with one line on stderr for bad input."""
+    """Exit 0 with a result (``none`` included); 2 with one line on stderr for bad input (the code each
+    error carries, drivectl/errors.py)."""
     from drivectl.machine.config import ConfigError
 
     path = Path(args.trace)
-    try:
-        spec = load_plant(args.plant)
-        if getattr(args, "write_config", None) is not None:  # before the work
-            from drivectl.machine.config_io import target_file
+    spec = load_plant(args.plant)
+    if getattr(args, "write_config", None) is not None:  # before the work
+        from drivectl.machine.config_io import target_file
 
-            args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
-        trace = Trace.read(path)
-        out = Path(args.out) if args.out else path.parent
-        res = explain(trace, spec, out_dir=out, source=str(path), stem=path.stem + ".explain",
-                      progress=not getattr(args, "quiet", False))
-    except (ExplainError, TraceError, PlantError, ConfigError) as exc:
-        print(f"drivectl: {exc}", file=sys.stderr)
-        return 2
+        args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
+    trace = Trace.read(path)
+    out = Path(args.out) if args.out else path.parent
+    res = explain(trace, spec, out_dir=out, source=str(path), stem=path.stem + ".explain",
+                  progress=not getattr(args, "quiet", False))
     if args.json:
         print(json.dumps(res.to_json()))
     else:
@@ -687,14 +686,10 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
         axis = trace.meta.get("axis", "")
         plant = next((f for f in res.files if str(f).endswith(".plant.toml")), None)
-        try:
-            if plant is None:
-                raise ConfigError("--write-config: no augmented plant was written to merge")
-            target = target_file(args.write_config, getattr(args, "config", None))
-            backup = merge_into(target, axis, {"plant": str(Path(plant).resolve())})
-        except ConfigError as exc:
-            print(f"drivectl: {exc}", file=sys.stderr)
-            return 2
+        if plant is None:
+            raise ConfigError("--write-config: no augmented plant was written to merge")
+        target = target_file(args.write_config, getattr(args, "config", None))
+        backup = merge_into(target, axis, {"plant": str(Path(plant).resolve())})
         if not args.json:
             print(f"merged axes.{axis}.plant into {target}" + (f" (old file kept as {backup})" if backup else ""))
     return 0

@@ -21,6 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from drivectl.errors import InputError
 from drivectl.plant_emulator.models import Plant, PlantSpec
 from drivectl.tools.explain.sim import BatchSim, Windows, internal_state, make_windows, window_rms
 from drivectl.tracefile.format import REQUIRED, Trace
@@ -52,7 +53,7 @@ GAP_METRIC = ("windowed simulation error: RMS of simulated minus measured positi
               "(effort of row k acting from t(k+d) to t(k+d+1), d = the trace's transport_delay_cycles, default 1)")
 
 
-class ExplainError(ValueError):
+class ExplainError(InputError):
     """The trace cannot be explained (bad input, or too little in it to decide): one line naming the file."""
 
 

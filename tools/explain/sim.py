@@ -13,7 +13,7 @@ Coulomb friction, substep-midpoint table forces, per-substep delay weights). Wit
 substep count the result equals ``Plant.step`` to rounding (tests/test_explain_sim.py checks it); fewer
 substeps are used only for the coarse search of a fit, never for the reported gaps.
 
-Speed (issue 17 point 6; bench/explain_speed.py): a one-body plant whose input is constant over a cycle
+Speed (bench/explain_speed.py): a one-body plant whose input is constant over a cycle
 (no Stribeck, periodic, time disturbance or delay) takes a whole cycle in closed form wherever the body
 keeps moving one way (friction is then a constant force: s -> P_n s + Q_n u, the substep map composed)
 or stays stuck, and runs the substeps only for the few (window, candidate) pairs that stop, start or

@@ -297,17 +297,18 @@ def test_every_real_eds_is_brought_up_and_traced_or_refused_in_one_line(tmp_path
         assert outcome.max_um <= 2.0
 
 
-def test_doctor_drive_section(tmp_path):
-    from drivectl.tools.cli.doctor_drive import drive_section
+def test_doctor_drive_section(tmp_path, capsys):
+    from drivectl.tools.cli.doctor import drive_sections
 
-    ok, lines = drive_section(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), "x")
-    text = "\n".join(lines)
-    assert ok and "0x6502" in text and "cyclic synchronous torque (10)" in text and "RPDO deadline" in text
+    with open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"]) as m:
+        sec = drive_sections(m, ["x"], try_enable=True)["x"]
+    text = "\n".join(f"{k}: {v}" for k, v in sec.items())
+    assert "0x6502" in text and "cyclic synchronous torque (10)" in text and "RPDO deadline" in text
     assert "enabled at zero torque, then disabled" in text
     eds = _without(tmp_path / "d.eds", cia402.TARGET_TORQUE)
-    ok, lines = drive_section(load_config(_config(tmp_path, eds)), "x")
-    assert not ok and lines == [f"drive: refused: axis x: EDS {eds}: drive has no torque setpoint 0x6071: drivectl "
-                                "closes the loop in torque"]
+    assert main(["--config", str(_config(tmp_path, eds)), "doctor", "--axis", "x", "--seconds", "0.1"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"drivectl: axis x: EDS {eds}: drive has no torque setpoint 0x6071: drivectl closes the loop in torque"]
 
 
 def test_emulate_eds_is_checked_before_the_bus_opens(capsys, tmp_path):
@@ -357,8 +358,10 @@ def test_standing_blocker_reads_a_fault_without_enabling(tmp_path):
         assert "0x603F = 0x4310 (drive temperature too high)" in standing_blocker(m.axes["x"])
 
 
-def test_doctor_command_says_the_drive(tmp_path, capsys):
-    cfg = str(_config(tmp_path, EMULATED_DRIVE_EDS))
-    assert main(["--config", cfg, "doctor", "--axis", "x"]) == 0
-    out = capsys.readouterr().out
-    assert "0x6502" in out and "enabled at zero torque, then disabled" in out
+def test_doctor_command_says_the_drive(tmp_path):
+    from drivectl.tools.cli.doctor import drive_sections
+
+    with open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"]) as m:
+        sec = drive_sections(m, ["x"])["x"]
+        assert "0x6502" in sec and sec["enable"].startswith("none seen")
+        assert m.axes["x"].power.value == sec["power"] != "operation enabled"  # nothing was enabled

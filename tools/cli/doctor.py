@@ -36,6 +36,8 @@ def add_doctor_parser(sub: Any) -> None:
     d.add_argument("--out", metavar="PNG", default="doctor-latency.png",
                    help="the lateness histogram's plot (default doctor-latency.png; not with --json)")
     d.add_argument("--cpu", type=int, default=None, help="pin the loop's thread to this CPU")
+    d.add_argument("--try-enable", action="store_true", help="after the probe, enable each drive at zero torque "
+                   "and disable it again (confirmed by the drive), to say whether it enables or why not")
 
 
 def kernel() -> dict[str, Any]:
@@ -49,7 +51,8 @@ def kernel() -> dict[str, Any]:
     return {"release": platform.release(), "version": version, "preempt_rt": rt}
 
 
-def probe(cfg: Any, names: list[str], seconds: float, cpu: int | None = None) -> dict[str, Any]:
+def probe(cfg: Any, names: list[str], seconds: float, cpu: int | None = None,
+          try_enable: bool = False) -> dict[str, Any]:
     """The loop's own timing probe: the wall-clock loop over the configured bus, no axis enabled."""
     import math
 
@@ -73,15 +76,20 @@ def probe(cfg: Any, names: list[str], seconds: float, cpu: int | None = None) ->
         finally:
             loop.close()
         return {"status": status, "latency": loop.latency, "deadlines": hw.deadlines,
-                "drives": drive_sections(hw, names), "cycles": status["cycles"],
+                "drives": drive_sections(hw, names, try_enable), "cycles": status["cycles"],
                 "finite": all(math.isfinite(v) for v in status["latency_ms"].values())}
     finally:
         hw.close()
 
 
-def drive_sections(hw: Any, names: list[str]) -> dict[str, dict[str, str]]:
-    """Per drive, what the master found and wrote: one line per item (identity, 0x6502, mode, mapping,
-    watchdogs, and why it would not enable). The deadline written (0x1400:05) is the timing model's."""
+def drive_sections(hw: Any, names: list[str], try_enable: bool = False) -> dict[str, dict[str, str]]:
+    """Per drive, what the master found and wrote (driver/drive_report.py): identity, 0x6502, mode, mapping,
+    watchdogs, the fallbacks, and what would stop an enable, read without enabling; with ``try_enable`` an
+    enable attempt at zero torque (disabled after, as the drive confirms) says whether it enables or why not.
+    The deadline written (0x1400:05) is the timing model's. Called after the probe's loop has stopped."""
+    from drivectl.driver.canopen_axis import CanopenAxis
+    from drivectl.driver.drive_report import drive_lines, enable_attempt, standing_blocker
+
     out: dict[str, dict[str, str]] = {}
     for n in names:
         axis = hw.axes[n]
@@ -90,9 +98,15 @@ def drive_sections(hw: Any, names: list[str]) -> dict[str, dict[str, str]]:
         if d is not None:
             sec["deadline"] = (f"{d.ms} ms written to 0x1400:05 ({d.source}: {d.formula})" if d.ms else
                                "0x1400:05 = 0: the drive does not watch the master's setpoints")
-        power = getattr(axis, "power", None)
-        if power is not None:
-            sec["power"] = power.value
+        if isinstance(axis, CanopenAxis):
+            for what, value in drive_lines(axis):
+                sec[what] = f"{sec[what]}; {value}" if what in sec else value
+            if try_enable:
+                ok, said = enable_attempt(axis)
+                sec["enable"] = said if ok else "does not enable: " + said
+            else:
+                sec["enable"] = standing_blocker(axis)
+        sec["power"] = axis.power.value
         out[n] = sec
     return out
 
@@ -151,7 +165,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     for n in names:
         cfg.axis(n)
     load = machine_load(cfg, names)
-    res = probe(cfg, names, args.seconds, args.cpu)
+    res = probe(cfg, names, args.seconds, args.cpu, args.try_enable)
     status, deadlines = res["status"], res["deadlines"]
     lat = status["latency_ms"]
     verdict, per = assess(deadlines, cfg.cycle_s, lat)

@@ -6,8 +6,10 @@ the configured bus (SYNC, TPDOs, RPDOs of every axis), no axis enabled. It repor
 percentiles of every cycle and what the OS granted, the kernel (PREEMPT_RT or not) and the bus load, and
 per axis the deadline it uses (controllers/runtime/timing.py, docs/timing.md) and whether the host meets it.
 
-The drives part says, per drive, the deadline written (:func:`drive_sections`) and what the master found
-and whether it enables (tools/cli/doctor_drive.py); ``enable`` refuses on the same verdict (session.py).
+The drives part (:func:`drive_sections`, driver/drive_report.py) says, per drive, what the master found and
+wrote (identity, 0x6502, mode, mapping, watchdogs, the deadline, the fallbacks) and what would stop an
+enable, read without enabling (``--try-enable``: an attempt at zero torque, disabled after as the drive
+confirms); ``enable`` refuses on the same timing verdict (session.py).
 """
 
 from __future__ import annotations
@@ -189,11 +191,6 @@ def cmd_doctor(args: argparse.Namespace) -> int:
         for item, text in res["drives"].get(n, {}).items():
             if item != "deadline":
                 print(f"          {item}: {text}")
-    from drivectl.tools.cli.doctor_drive import drive_section
-
-    for n in names:  # each drive as the master finds it, and whether it enables or why not (doctor_drive.py)
-        _, lines = drive_section(cfg, n)
-        print(f"axis {n:<4} " + "\n          ".join(lines))
     path = plot_histogram(res["latency"], deadlines, cfg.cycle_s, args.out)
     print(f"histogram {path}")
     print(f"verdict   {verdict}" + (f" ({WAYS_OUT})" if verdict != "ok" else ""))

@@ -28,6 +28,7 @@ import math
 import signal
 import sys
 import threading
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -45,7 +46,9 @@ from drivectl.controllers.runtime.loop import (
     ServoLoop,
     drive_error,
 )
+from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
+from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
 from drivectl.profiles.base import Profile, profile_name
@@ -67,6 +70,14 @@ def _take_over(rt: AxisRuntime, handle: Move, kind: str) -> bool:
     return True
 
 
+
+class TimingWarning(UserWarning):
+    """``enable``: the host's lateness comes near the axis's deadline (docs/timing.md)."""
+
+
+#: wall-clock cycles the loop must have run before ``enable`` judges the host by its record (1 s at 1 kHz)
+MIN_TIMING_CYCLES = 1000
+
 class AxisControl:
     """One axis of a connected machine (``machine.axes["x"]``)."""
 
@@ -74,6 +85,7 @@ class AxisControl:
         self._m = machine
         self._rt = rt
         self.name = rt.name
+        self.timing_warning = ""  # what enable said of the host's timing (controllers/runtime/timing.py)
 
     # -- what it reports ---------------------------------------------------------------------------------
     @property
@@ -137,6 +149,8 @@ class AxisControl:
             raise AxisError(f"axis {self.name}: in Fault ({f'0x{err[0]:04X}: {err[1]}' if err else 'no code'}), "
                             "fault_reset first")
 
+        self._check_timing()
+
         def go() -> None:
             if rt.state is AxisState.ENABLING:
                 rt.ch.axis.enable()
@@ -150,6 +164,21 @@ class AxisControl:
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
+
+    def _check_timing(self) -> None:
+        """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:
+        a refusal past the margin, a warning near it (controllers/runtime/timing.py, docs/timing.md)."""
+        loop = self._m.loop
+        recent = loop.recent.record()
+        if loop.clock != "wall" or recent.n < MIN_TIMING_CYCLES:
+            return
+        verdict, why = judge(loop.deadlines[self.name], loop.dt, recent.percentiles_ms())
+        if verdict == "refuse":
+            raise AxisError(f"axis {self.name}: not enabled: the host is too late for its deadline ({why}); "
+                            f"{WAYS_OUT}")
+        if verdict == "warn":
+            self.timing_warning = f"axis {self.name}: the host comes near its deadline ({why})"
+            warnings.warn(self.timing_warning, TimingWarning, stacklevel=3)
 
     def disable(self, timeout: float = 1.0) -> None:
         """Torque off; returns once the drive reports a state without torque (AxisError if not)."""
@@ -188,16 +217,38 @@ class AxisControl:
             raise LimitError(f"axis {self.name}: {what}: {target:.6f} m is outside the soft limits "
                              f"[{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; nothing moved")
 
-    def _command(self, kind: str, target: float | None, apply: Any) -> Move:
+    def _plan(self, target: float, speed: float | None) -> tuple[float, Any] | None:
+        """The controller's preview of a move to ``target`` from where the reference rests now, computed
+        here, outside the loop's cycle, as a run's is (None: the axis is moving, or nothing to plan).
+        Installed by the command only if the reference still rests there when it is applied."""
+        rt = self._rt
+        traj = rt.traj
+        if traj._moving or rt.run is not None or rt.handle is not None:
+            return None
+        start = traj.position
+        try:
+            plan = PlannedMove(start, target, rt.motion, speed)
+        except ValueError:
+            return None
+        dt = self._m.loop.dt
+        n = min(int(math.ceil(plan.duration / dt)) + 2, int(PREVIEW_S / dt))
+        # the loop's Trajectory gives the move's first reference one cycle after the command: times from dt
+        preview = run_preview(rt.ch.controller, plan, dt * (np.arange(n) + 1.0))
+        return (start, preview) if preview is not None else None
+
+    def _command(self, kind: str, target: float | None, apply: Any, plan: tuple[float, Any] | None = None) -> Move:
         handle = Move(self._m.loop, self.name, kind, target)
         rt = self._rt
 
         def go() -> None:
             if not _take_over(rt, handle, kind):
                 return
+            planned = plan is not None and rt.run is None and not rt.traj._moving and rt.traj.position == plan[0]
             rt.run = None
             rt.jog_until = 0
             apply()
+            if planned:
+                rt.ch.controller.use_preview(plan[1])
             rt.handle = handle
             handle.status = "moving"
             rt.move_started = True
@@ -211,7 +262,8 @@ class AxisControl:
         self._check_target("move_to", position)
         if speed is not None and not (math.isfinite(speed) and speed > 0):
             raise LimitError(f"axis {self.name}: move_to: speed must be > 0 m/s, got {speed!r}")
-        return self._command("move", position, lambda: self._rt.traj.move_to(position, speed))
+        plan = self._plan(position, speed)
+        return self._command("move", position, lambda: self._rt.traj.move_to(position, speed), plan)
 
     def move_by(self, distance: float, *, speed: float | None = None) -> Move:
         """A move of ``distance`` (m) from where the reference stands (the last target)."""
@@ -260,8 +312,7 @@ class AxisControl:
             rt.traj.move_to(toward, speed)
             rt.jog_until = loop.cycle + deadman
 
-        handle = self._command("jog", velocity, apply)
-        return handle
+        return self._command("jog", velocity, apply, self._plan(toward, speed))
 
     def stop(self, why: str = "stopped") -> Move:
         """A controlled stop (ruckig, within the motion limits); the axis then holds where it stopped."""
@@ -275,6 +326,7 @@ class AxisControl:
             if rt.handle is not None:
                 old, rt.handle = rt.handle, None
                 old.finish("stopped", rt, why)
+            rt.ch.controller.use_preview(None)  # the move's plan ends here (the stop is planned in the cycle)
             if rt.run is not None:  # a profile: continue from its reference state
                 ref = rt.run.next()
                 rt.traj.position, rt.traj.velocity, rt.traj.acceleration = ref.position, ref.velocity, ref.acceleration
@@ -409,6 +461,7 @@ class AxisControl:
             rt.position -= delta
             rt.reference -= delta
             rt.ch.last_position = None
+            rt.ch.controller.shift(delta)  # an observer's estimate moves too (mbc: a 5 mm step ran the axis away)
 
         self._m.loop.submit(go)
 
@@ -548,12 +601,15 @@ def connect(
     start: dict[str, float] | None = None,
     faults: Sequence[str] | None = None,
     fault_dir: str | Path | None = "traces",
-    stall_s: float = 0.05,
+    stall_s: float | None = None,
     ring_s: float = 5.0,
     cpu: int | None = None,
     realtime: bool = True,
     gc_control: bool = True,
     gil_switch: bool = True,
+    effects: Sequence[tuple[str, dict[str, float]]] = (),
+    noise: float = 0.0,
+    seed: int = 0,
 ) -> Machine:
     """Connect to the machine of ``config`` (a file, a MachineConfig, or None: $DRIVECTL_CONFIG, else
     the embedded emulated machine) and start its resident loop.
@@ -562,12 +618,16 @@ def connect(
     bus and with ``sim``, wall elsewhere); ``start``: emulated axes' positions at power-on, m;
     ``faults``: fault injections for the emulated drives (``"emcy-fault@0.5"``: see docs/faults.md;
     times count from the first SYNC); ``fault_dir``: where the ring's last ``ring_s`` seconds go on any
-    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop; ``cpu``,
+    fault (None: not written); ``stall_s``: the stall bound of the wall-clock loop (None: each
+    enabled axis's deadline, docs/timing.md); ``cpu``,
     ``realtime``, ``gc_control``, ``gil_switch``: how the wall-clock loop keeps its deadlines (see
-    controllers/runtime/loop.py).
+    controllers/runtime/loop.py). ``effects`` (``[("stribeck", {"excess_force": 15.0, "velocity": 0.002})]``)
+    and ``noise`` (std of a Gaussian force noise, effort unit; ``seed``) are what the emulated drives play
+    beyond their plant, as ``drivectl trace --effect/--noise``: each controller believes its axis's
+    ``model`` (else its ``plant``) without them.
     """
     from drivectl.controllers.registry import make_controller
-    from drivectl.machine.build import open_machine, plant_specs
+    from drivectl.machine.build import model_specs, open_machine, plant_specs
     from drivectl.machine.config import MachineConfig, load_config
     from drivectl.plant_emulator.faults import parse_fault
 
@@ -575,14 +635,16 @@ def connect(
     names = list(axes) if axes is not None else list(cfg.axes)
     for n in names:
         cfg.axis(n)
-    specs = plant_specs(cfg, names)
+    specs = plant_specs(cfg, names, effects=effects)
+    models = model_specs(cfg, names, plants=specs)
     controllers = {n: make_controller(cfg.axis(n).controller, cfg.cycle_s, cfg.axis(n).controller_settings,
-                                      plant=specs[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
+                                      plant=models[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
     if clock is None:
         clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall")
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall", effects=effects,
+                      noise=noise, seed=seed)
     try:
         channels = []
         motion = {}
@@ -594,8 +656,8 @@ def connect(
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
-                         ring_s=ring_s, fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime,
-                         gil_switch=gil_switch)
+                         deadlines={n: d.seconds for n, d in hw.deadlines.items()}, ring_s=ring_s,
+                         fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
     except BaseException:

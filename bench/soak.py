@@ -9,14 +9,175 @@ would add), and no move may hang (a faulthandler guard dumps the stacks and exit
 tracemalloc slows the loop several times: 10 simulated minutes take 15-20 minutes here.
 
     python bench/soak.py [--minutes 10] [--seed 1] [--json]
+
+``--wall`` (issue 25 point 8, the timing model of docs/timing.md): N minutes on the wall clock instead,
+``drivectl.connect(clock="wall")`` with x, y and z enabled beside one CPU-bound process, a random mix of
+moves, jogs, stops and captures, status polled at 20 Hz; in-process, or with ``--across`` against
+``drivectl emulate --socketcand`` in another process. At the end the process is stopped for 0.5 s
+(SIGSTOP, SIGCONT from a helper process): the axes must fault within their deadline plus 2 cycles after it
+resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "faults", "missed_fraction",
+"worst_late_ms", "latency_p99_99_ms", "moves_done", "moves_failed"} (the deliberate stall excluded).
+Target: 0 faults over 30 minutes, both ways.
+
+    python bench/soak.py --wall [--across] [--minutes 30] [--json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
 
 from drivectl.tools.conformance.soak import run_soak
+
+#: where the wall soak's moves go (m, around each axis's start; inside every axis's soft limits)
+SPAN_M = 0.008
+
+
+def _burn() -> None:
+    while True:
+        pass
+
+
+def _emulator(tmp: Path):
+    """``drivectl emulate --socketcand`` in another process: (process, port)."""
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "emulate", "--socketcand"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    line = proc.stdout.readline()
+    if not line.startswith("emulating"):
+        raise RuntimeError(f"emulate did not start: {line}{proc.stderr.read()}")
+    return proc, int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
+
+
+def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False) -> dict:
+    """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
+    import dataclasses
+    import multiprocessing
+
+    import drivectl
+    from drivectl.controllers.runtime.handles import MotionFault
+    from drivectl.driver.axis import AxisError
+    from drivectl.machine.config import load_config
+
+    rng = random.Random(seed)
+    cfg = load_config(None)
+    emu = None
+    tmp = Path(tempfile.mkdtemp(prefix="soak-wall-"))
+    if across:
+        emu, port = _emulator(tmp)
+        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
+                                                               host="127.0.0.1", port=port))
+    burner = multiprocessing.get_context("spawn").Process(target=_burn, daemon=True)
+    burner.start()
+    polls, done, failed, fault_lines, refusals = [0], 0, 0, [], [0]
+    try:
+        with drivectl.connect(cfg, clock="wall", fault_dir=tmp) as m:
+            names = list(m.axes)
+            for ax in m.axes.values():
+                ax.enable()
+            home = {n: ax.position for n, ax in m.axes.items()}
+            stop_poll = threading.Event()
+
+            def poll() -> None:  # the status at 20 Hz, as a UI would
+                while not stop_poll.wait(0.05):
+                    m.status()
+                    polls[0] += 1
+
+            poller = threading.Thread(target=poll, daemon=True)
+            poller.start()
+            st0 = m.status()
+            t_end = time.monotonic() + 60.0 * minutes
+            while time.monotonic() < t_end:
+                name = rng.choice(names)
+                ax = m.axes[name]
+                what = rng.choice(("move", "move", "jog", "stop", "capture"))
+                try:
+                    if ax.state != "servo":  # a fault: say so, reset, go on (enable may refuse: the host is late)
+                        if ax.fault is not None:
+                            fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}")
+                        ax.fault_reset(2.0)
+                        try:
+                            ax.enable(2.0)
+                        except AxisError as exc:
+                            refusals[0] += 1
+                            fault_lines.append(f"{name}: {exc}")
+                            time.sleep(1.0)
+                        continue
+                    if what == "move":
+                        ax.move_to(home[name] + rng.uniform(-SPAN_M, SPAN_M)).wait(20.0)
+                    elif what == "jog":
+                        v = rng.choice((-1, 1)) * rng.uniform(0.002, 0.01)
+                        for _ in range(rng.randint(1, 6)):
+                            if abs(ax.position - home[name]) > SPAN_M:
+                                break
+                            ax.jog(v)
+                            time.sleep(0.1)
+                        ax.stop().wait(10.0)
+                    elif what == "stop":
+                        h = ax.move_to(home[name] + rng.uniform(-SPAN_M, SPAN_M))
+                        time.sleep(rng.uniform(0.01, 0.3))
+                        ax.stop().wait(10.0)
+                        h.wait(1.0) if not h.done else None
+                    else:
+                        ax.capture(trigger="now", pre=0.2, post=0.2).wait(5.0)
+                    done += 1
+                except (MotionFault, TimeoutError, AxisError) as exc:
+                    failed += 1
+                    fault_lines.append(f"{name} {what}: {exc}")
+            st = m.status()
+            stop_poll.set()
+            poller.join(1.0)
+            stall = _stall(m, stall_s)
+    finally:
+        burner.terminate()
+        if emu is not None:
+            emu.send_signal(signal.SIGTERM)
+            emu.communicate(timeout=30)
+    slots = max(st["cycles"] - st0["cycles"] + st["skipped_cycles"] - st0["skipped_cycles"], 1)
+    return {"minutes": minutes, "faults": st["faults"] - st0["faults"],
+            "missed_fraction": (st["missed_deadlines"] - st0["missed_deadlines"]) / slots,
+            "worst_late_ms": st["worst_late_ms"], "latency_p99_99_ms": st["latency_ms"]["p99_99"],
+            "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
+            "_status": st, "_polls": polls[0],
+            "_faults": fault_lines}
+
+
+def _stall(m, seconds: float) -> dict:
+    """Stop this process for ``seconds`` (SIGSTOP, then SIGCONT from a helper process) with every axis
+    enabled; how many loop cycles after it resumed each axis was faulted."""
+    from drivectl.driver.axis import AxisError
+
+    loop = m.loop
+    rts = loop.axes
+    for ax in m.axes.values():
+        if ax.state != "servo":
+            try:
+                ax.fault_reset(2.0)
+                ax.enable(2.0)
+            except AxisError as exc:  # the host too late for the deadline: refused, and said why
+                return {"fault": None, "axis": None, "cycles_after_resume": None, "deadline_ms": None,
+                        "safe": {}, "refused": str(exc)}
+    n0 = len(loop.faults)
+    helper = subprocess.Popen(["sh", "-c", f"sleep 0.2; kill -STOP {os.getpid()}; sleep {seconds}; "
+                                           f"kill -CONT {os.getpid()}"])
+    before = {n: rt.servo_k for n, rt in rts.items()}
+    helper.wait()
+    m.run_until(lambda: len(loop.faults) > n0, 2.0)
+    time.sleep(0.1)
+    fault = loop.faults[n0] if len(loop.faults) > n0 else None
+    caught = None if fault is None else fault.cycle - before.get(fault.axis, 0)
+    return {"fault": None if fault is None else f"{fault.kind}: {fault.detail}", "axis": fault and fault.axis,
+            "cycles_after_resume": caught, "deadline_ms": loop.deadlines.get(fault.axis) * 1e3 if fault else None,
+            "safe": {n: ax.power.value for n, ax in m.axes.items()}}
 
 
 def main() -> None:
@@ -24,7 +185,32 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes (default 10)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    ap.add_argument("--wall", action="store_true", help="on the wall clock, x, y and z, beside a CPU-bound process")
+    ap.add_argument("--across", action="store_true", help="--wall against drivectl emulate --socketcand")
     args = ap.parse_args()
+    if args.wall:
+        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json)
+        if args.json:
+            print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
+            return
+        st, stall = r["_status"], r["_stall"]
+        print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
+              f"{r['minutes']:g} min, x y z enabled beside one CPU-bound process; load average "
+              f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+        print(f"faults {r['faults']}, moves done {r['moves_done']}, failed {r['moves_failed']}, enables refused "
+              f"{r['_refusals']} (the host too late for the deadline), status polls {r['_polls']}")
+        print(f"missed {r['missed_fraction'] * 100:.3f} % of the slots, worst late {r['worst_late_ms']:.2f} ms; "
+              "lateness " + ", ".join(f"{q} {v:.3f} ms" for q, v in st["latency_ms"].items()))
+        print("deadlines " + ", ".join(f"{n} {v:g} ms" for n, v in st["deadline_ms"].items()))
+        for line in list(dict.fromkeys(r["_faults"]))[:10]:
+            print(f"  {line}")
+        if stall.get("refused"):
+            print(f"stall of 0.5 s (SIGSTOP): not tried, no axis could be enabled: {stall['refused']}")
+            return
+        print(f"stall of 0.5 s (SIGSTOP): {stall['fault'] or 'NOT caught'}; axis {stall['axis']} faulted "
+              f"{stall['cycles_after_resume']} cycle(s) after it resumed (deadline {stall['deadline_ms']} ms); "
+              f"end states {stall['safe']}")
+        return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {
         "simulated_s": round(r.simulated_s, 3),

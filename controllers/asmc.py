@@ -94,6 +94,10 @@ TABLE3 = {
 
 LAWS = (11, 12, 13, 14)
 
+#: standstill: slower than this the axis sticks or creeps (a force at the Coulomb level exactly moves it at
+#: 0.1 um/s: the integral, held while it slips, would leave it creeping 0.5 um off for 0.3 s)
+CREEP_M_S = 1e-5
+
 
 @dataclass
 class AsmcSettings(Settings):
@@ -112,6 +116,10 @@ class AsmcSettings(Settings):
         "reference", ("reference", "measured"), doc="velocity whose sign selects the Coulomb compensation"
     )
     friction_band: Any = param(0.0, lo=0.0, unit="mm/s", doc="smoothing of that sign (0: hard sign)")
+    standstill_gain: float = param(0.0, lo=0.0, unit="N/(um s)",
+                                   doc="integral action at standstill (the reference rests, the axis sticks) "
+                                   "on the error outside standstill_band_m; 0: the paper's law (docs/standstill.md)")
+    standstill_band_m: float = param(1.5e-7, lo=0.0, unit="m", doc="standstill: the error left alone")
 
     def validate(self, source: str = "settings", prefix: str = "") -> None:
         super().validate(source, prefix)
@@ -233,6 +241,11 @@ class Asmc(Controller):
                 m["mass"], m["c_pos"], m["c_neg"], m["fc_pos"], m["fc_neg"],
                 s.friction_sign == "reference", float(s.friction_band) * 1e-3,
             )
+        #: the standstill integral force, N: built only while the reference rests and the axis sticks,
+        #: released when the reference moves (docs/standstill.md)
+        self.hold_force = 0.0
+        self._hold_rate = float(s.standstill_gain) * 1e6 * self.dt  # N per m of error per cycle
+        self._hold_band = float(s.standstill_band_m)
 
     def adapt(self, s_mm: Any) -> Any:
         """One cycle of the gain law for surface ``s_mm`` (mm/s): k += dt dk/dt, clamped. Returns k."""
@@ -273,6 +286,8 @@ class Asmc(Controller):
         else:
             coul = fc_pos if vs > 0.0 else -fc_neg if vs < 0.0 else 0.0
         f = mass * acc + h * sat + visc + coul
+        if self._hold_rate:
+            f += self._standstill(reference, v, e)
         # adaptation (after the effort: this cycle used k(t_k)); inline gain_rate for speed
         law = self._law
         if law == 14:
@@ -287,6 +302,22 @@ class Asmc(Controller):
         self.k = k_lo if k < k_lo else k_bar if k > k_bar else k
         self.s_mm = s_mm
         return f
+
+    def _standstill(self, reference: Reference, v: float, e: float) -> float:
+        """The standstill integral force (docs/standstill.md): at rest the law's own stiffness, M k lambda
+        (0.5 N/um on y), cannot pass the Coulomb friction (51 N) short of a 100 um error, so a resting
+        axis stands where it stuck. While the reference rests and the axis sticks the force integrates the
+        error outside the band; it is held while the axis slips, and released as the reference moves
+        (the law's own Coulomb compensation takes over)."""
+        if reference.velocity != 0.0 or reference.acceleration != 0.0:
+            self.hold_force = 0.0
+        elif -CREEP_M_S < v < CREEP_M_S:
+            band = self._hold_band
+            if e > band:
+                self.hold_force += self._hold_rate * (e - band)
+            elif e < -band:
+                self.hold_force += self._hold_rate * (e + band)
+        return self.hold_force
 
     def _step_array(self, reference: Reference, feedback: Feedback) -> np.ndarray:
         """The same law on numpy arrays (a batch of gain sets; feedback may be arrays too)."""

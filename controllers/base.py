@@ -246,6 +246,17 @@ class Controller(ABC):
         that it does not take the addition for a disturbance and cancel it. Default: nothing."""
         return None
 
+    def shift(self, delta: float) -> None:  # noqa: B027 - optional hook, no-op by default
+        """The axis's coordinates moved: every position reads ``delta`` less from the next cycle on (a home
+        offset, session.py ``set_position``). A law that keeps absolute positions in its state (an
+        observer's estimate) moves them, or it would see a step of ``delta``. Default: nothing kept."""
+
+    def skipped(self, cycles: int) -> None:  # noqa: B027 - optional hook, no-op by default
+        """Told, before ``step``, that ``cycles`` cycles passed since the last step without one (the
+        wall-clock loop woke late and resynchronised; the drive held the last command meanwhile:
+        docs/timing.md). A law with a model propagates its estimate over them. Default: nothing (an
+        integrator integrates one step per call: a skipped cycle winds nothing up)."""
+
     def describe(self) -> dict[str, Any]:
         """Name and settings, for trace metadata."""
         return {"controller": self.name, **{k: _plain(v) for k, v in self.settings.as_dict().items()}}

@@ -49,6 +49,9 @@ class LearnedFeedforward(Controller):
     def use_preview(self, preview: Any) -> None:
         self.inner.use_preview(preview)
 
+    def skipped(self, cycles: int) -> None:
+        self.inner.skipped(cycles)
+
     def step(self, reference: Reference, feedback: Feedback) -> float:
         k = self._k
         self._k = k + 1

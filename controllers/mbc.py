@@ -70,6 +70,13 @@ class MbcSettings(Settings):
     snap: str = choice("spread", ("spread", "exact"),
                        doc="two-mass: the inverse's snap impulse at each jerk switch spread over the window "
                        "the model sets (controllers/linear_model.py), or held in one cycle (exact)")
+    standstill: bool = choice(True, (True, False),
+                              doc="a model with Coulomb friction: while the reference rests and the axis sticks, "
+                              "the filter is frozen (docs/standstill.md)")
+    standstill_band_m: float = param(1.5e-7, lo=0.0, unit="m",
+                                     doc="standstill: the error left alone (no integral action inside it)")
+    standstill_s: float = param(0.05, lo=0.0, lo_open=True, unit="s",
+                                doc="standstill: integral time of the error outside the band")
 
 
 #: (bandwidth_hz, observer_hz) when the settings leave them 0, by the model's number of bodies: a coupling
@@ -233,7 +240,13 @@ class Mbc(Controller):
         # the cycle as two dot products: s' = W [s, y_pos, y_vel, u_prev]; u = (uff + K xref) - Kf s'
         self._W = np.ascontiguousarray(np.column_stack([self._Mp, self._Np, d.G]))
         self._Kf = np.concatenate([d.K, -d.gd])
+        # standstill (docs/standstill.md): only where the model has Coulomb friction, the set-valued force
+        # that holds a resting axis; the integral gain acts on the table position error outside the band
+        self._hold = bool(s.standstill) and any(b.has_coulomb for b in self.model.design.bodies)
+        self._hold_band = float(s.standstill_band_m)
+        self._hold_gain = float(d.K[n - 2]) * self.dt / float(s.standstill_s)
         self._design_for = key
+        self._rest = (math.nan, 0.0, 0.0)
 
     def reset(self) -> None:
         self._ensure_design()
@@ -245,6 +258,7 @@ class Mbc(Controller):
         self._u_prev = 0.0  # net command sent last cycle (acting now)
         self._fk = 0.0  # the friction compensation in it
         self._k = 0  # cycle index into the prepared table
+        self._rest: tuple[float, float, float] = (math.nan, 0.0, 0.0)  # (position, row) of the last hold
 
     @property
     def spread(self) -> float:
@@ -303,6 +317,9 @@ class Mbc(Controller):
         tab = self._table
         if tab is not None and k < len(tab[0]) and abs(reference.position - tab[0][k]) <= 1e-12:
             return tab[1][k], tab[2][k]
+        rest = reference.velocity == 0.0 and reference.acceleration == 0.0 and reference.jerk == 0.0
+        if rest and reference.position == self._rest[0]:
+            return self._rest[1], self._rest[2]  # a hold: the same row every cycle, computed once
         dt = self.dt
         ext = _Extrapolated(reference)
         delay = self.model.extra_delay / dt
@@ -311,6 +328,8 @@ class Mbc(Controller):
         uff = float(self.model.held_effort(ext, tt, self.spread)[0]) if s.feedforward else 0.0
         fk = float(self.model.held_known_forces(ext, tt, self.spread)[0]) if s.friction_ff else 0.0
         xref = self.model.reference_states(ext, np.array([dt, 2 * dt]), self.spread)[0]
+        if rest:
+            self._rest = (reference.position, uff + float(xref @ self.d.K), fk)
         return uff + float(xref @ self.d.K), fk
 
     def loop_matrix(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -346,6 +365,9 @@ class Mbc(Controller):
             s[1:n:2] = feedback.velocity
             self._started = True
         ffk, fk = self._row(reference)
+        if (self._hold and feedback.velocity == 0.0 and reference.velocity == 0.0
+                and reference.acceleration == 0.0 and reference.jerk == 0.0):
+            return self._stand(reference, feedback, ffk, fk)
         # s(k+1|k) from s(k|k-1), the sample y(k) and the command acting over [k, k+1]
         z = self._z
         na = n + 2
@@ -361,6 +383,44 @@ class Mbc(Controller):
         self._fk = fk
         self._k += 1
         return u_net + fk
+
+    def _stand(self, reference: Reference, feedback: Feedback, ffk: float, fk: float) -> float:
+        """A cycle at standstill: the reference rests and the axis sticks (docs/standstill.md). Friction
+        then holds whatever net force is below the breakaway, so the filter, which knows no stiction,
+        would read the missing motion as a disturbance and wind d up through the stiction band (the
+        hunting). Instead the estimate is the measurement at rest, d' is 0 and d changes only by the
+        integral action on the error outside the band, slow against the loop."""
+        n = self._n
+        s = self._s
+        s[:n:2] = feedback.position
+        s[1:n:2] = 0.0
+        s[n + 1] = 0.0
+        e = reference.position - feedback.position
+        band = self._hold_band
+        if e > band:
+            s[n] -= self._hold_gain * (e - band)
+        elif e < -band:
+            s[n] -= self._hold_gain * (e + band)
+        u_net = ffk - float(np.dot(self._Kf, s))
+        self._u_prev = u_net
+        self._fk = fk
+        self._k += 1
+        return u_net + fk
+
+    def shift(self, delta: float) -> None:
+        """The coordinates moved by ``delta`` (a home offset): the estimate's positions move with them."""
+        if self._started:
+            self._s[:self._n:2] -= delta
+
+    def skipped(self, cycles: int) -> None:
+        """The estimate carried over ``cycles`` cycles without a sample, the last command held (as the drive
+        held it): the filter's open-loop prediction, so the next sample is not taken for a disturbance."""
+        if not self._started:
+            return
+        F, G, u = self.d.F, self.d.G, self._u_prev
+        s = self._s
+        for _ in range(cycles):
+            s[:] = F @ s + G * u
 
     def note_applied(self, effort: Any) -> None:
         """The effort actually sent (a learned feed-forward added to ours): the filter must know the

@@ -58,7 +58,7 @@ class AxisError(RuntimeError):
 
 class AxisConfigError(AxisError):
     """The drive or its description refused the configuration before anything moved (an EDS
-    without a required object, an SDO abort while configuring): bad input, not a fault."""
+    without an essential object, an SDO abort while configuring): bad input, not a fault."""
 
 
 @runtime_checkable

@@ -9,18 +9,19 @@ from dataclasses import dataclass
 
 import can
 import canopen
+from canopen import objectdictionary as odt
 
 from drivectl.driver import cia402
 from drivectl.driver.axis import AxisConfigError, AxisError, FaultKind, Feedback
+from drivectl.driver.capabilities import MODE_NAMES, choose_mode, refuse_mode
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     MASTER_NODE_ID,
     NMT_COB_ID,
-    RPDO_BASE,
-    TPDO_BASE,
     NmtCommand,
     NmtState,
 )
+from drivectl.driver.pdo_plan import entry_bits
 
 #: timeouts across processes are this many times the drive's measured SDO round trip (at least the defaults)
 PEER_RTT_FACTOR = 10.0
@@ -75,7 +76,7 @@ class AxisBoot:
         self._controlword = self.master.controlword(self.power)
         counts = self._sdo(cia402.POSITION_ACTUAL)
         self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
-        if self.mapping != "full":
+        if self._at_vel is None:
             self._prev_counts = (counts, self.clock.cycle)
         self._cw_sent = None  # the drive's 0x6040 after a (re)boot is not what we last sent
         self.lost_cycles = 0
@@ -141,7 +142,9 @@ class AxisBoot:
             self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
             self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
         try:
-            var = self.node.sdo[index] if sub is None else self.node.sdo[index][sub]
+            var = self.node.sdo[index]
+            if sub is not None and not isinstance(self.od[index], odt.ODVariable):
+                var = var[sub]  # (a plain variable is its own sub-index 0)
             if value is None:
                 return var.raw
             var.raw = value
@@ -156,75 +159,128 @@ class AxisBoot:
             raise AxisError(f"axis {self.name}: node {self.node_id}: SDO {what}: {exc}", FaultKind.BUS_ERROR) from None
 
     def _check_identity(self) -> None:
+        if not self._has(cia402.IDENTITY, 1, writable=False):
+            self.identity = Identity()  # no 0x1018 in the EDS: nothing to check against
+            return
         vendor = self._sdo(cia402.IDENTITY, 1)
-        product = self._sdo(cia402.IDENTITY, 2)
+        product = self._sdo(cia402.IDENTITY, 2) if self._has(cia402.IDENTITY, 2, writable=False) else 0
         want = self.identity
         if (want.vendor_id is not None and vendor != want.vendor_id) or (
-            want.product_code is not None and product != want.product_code
+            want.product_code is not None and self._has(cia402.IDENTITY, 2, writable=False)
+            and product != want.product_code
         ):
             raise AxisConfigError(
                 f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
                 f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
             )
 
+    def _has(self, index: int, sub: int = 0, writable: bool = True) -> bool:
+        """The EDS has index:sub (and lets it be written)."""
+        if index not in self.od:
+            return False
+        obj = self.od[index]
+        if not isinstance(obj, odt.ODVariable):
+            obj = obj.subindices.get(sub)
+        return obj is not None and (obj.writable or not writable)
+
     def _configure(self) -> None:
-        supported = self._sdo(cia402.SUPPORTED_DRIVE_MODES)
-        if not supported & cia402.supported_mode_bit(cia402.Mode.CYCLIC_SYNC_TORQUE):
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: drive does not support cyclic synchronous "
-                            f"torque (0x6502 = 0x{supported:08X})")
-        self._sdo(cia402.MODES_OF_OPERATION, value=int(cia402.Mode.CYCLIC_SYNC_TORQUE))
-        self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
-        self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
-        if self.max_torque_permille is not None:
-            self._sdo(cia402.MAX_TORQUE, value=self.max_torque_permille)
+        """The mode, the configured ``sdo_init`` writes (read back), the PDO plan and the optional objects the
+        drive has (SYNC period, heartbeat, torque limit, watchdogs); what it lacks is said in :attr:`boot_notes`."""
+        where = f"axis {self.name}: node {self.node_id}"
+        notes: list[str] = []
+        caps = self.capabilities
+        if self._has(cia402.SUPPORTED_DRIVE_MODES, writable=False):
+            supported, source = self._sdo(cia402.SUPPORTED_DRIVE_MODES), "0x6502 read from the device"
+        else:
+            supported, source = caps.modes, caps.modes_source
+        mode = choose_mode(supported)
+        if mode is None:
+            raise refuse_mode(where, supported, source)
+        self.mode = mode
+        notes.append(f"mode {MODE_NAMES[mode]} ({source}: 0x{supported:08X})")
+        notes.extend(caps.fallback_lines())
+        for index, sub, value in self.sdo_init:
+            self._sdo(index, sub, value=value)
+            back = self._sdo(index, sub)
+            if back != value:
+                raise AxisConfigError(f"{where}: sdo_init 0x{index:04X}:{sub} written {value}, read back {back}")
+        if self.sdo_init:
+            notes.append(f"sdo_init: {len(self.sdo_init)} value(s) written and read back")
+        self._sdo(cia402.MODES_OF_OPERATION, value=mode)
+        if self._has(cia402.COMM_CYCLE_PERIOD):
+            self._sdo(cia402.COMM_CYCLE_PERIOD, value=round(self.dt * 1e6))
+        if self._has(cia402.PRODUCER_HEARTBEAT_TIME):
+            self._sdo(cia402.PRODUCER_HEARTBEAT_TIME, value=self.heartbeat_ms)
+        else:
+            self.heartbeat_ms = 0  # the master cannot watch a drive that sends none
+            notes.append("0x1017 absent: the drive sends no heartbeat; the master watches its TPDOs only")
+        if self.max_torque_permille is not None and self._has(cia402.MAX_TORQUE):
+            limit = self.od[cia402.MAX_TORQUE]
+            permille = self.max_torque_permille
+            if limit.max is not None and permille > limit.max:
+                # the drive's own clip cannot go as high as limits.max_effort: it clips lower (safe), and says so
+                permille = limit.max
+                notes.append(f"0x6072 tops out at {limit.max} per mille ({self.scale.from_permille(limit.max):g} "
+                             f"{self.effort_unit}): the drive clips there, below limits.max_effort")
+            if limit.min is not None and permille < limit.min:
+                raise AxisConfigError(f"{where}: limits.max_effort is {permille} per mille of the rated effort, below "
+                                      f"the drive's lowest 0x6072 ({limit.min}): raise max_effort or lower "
+                                      "rated_effort")
+            self._sdo(cia402.MAX_TORQUE, value=permille)
         # the drive watches the master's heartbeat (0x1016) and reacts per 0x6007 when it stops;
         # allow three periods of the master's heartbeat before it counts as lost
         master_ms = round(self.clock.heartbeat_cycles * self.dt * 1000)
-        if master_ms:
+        if master_ms and self._has(cia402.CONSUMER_HEARTBEAT_TIME, 1):
             self._sdo(cia402.CONSUMER_HEARTBEAT_TIME, 1, value=(MASTER_NODE_ID << 16) | min(3 * master_ms, 0xFFFF))
+        deadline = any(p.slot.event_timer for p in self.pdo_plan.rx if p.trans_type <= 240)
+        if not self._has(cia402.CONSUMER_HEARTBEAT_TIME, 1) and not deadline:
+            notes.append("no heartbeat consumer (0x1016) and no RPDO deadline (0x14xx:05): the drive will not notice "
+                         "a lost master by itself (node guarding 0x100C/0x100D is not run by drivectl)")
         try:
             self._map_pdos()
         except canopen.SdoAbortedError as exc:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: PDO mapping aborted: {exc}") from None
-        mode = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
-        if mode != cia402.Mode.CYCLIC_SYNC_TORQUE:
-            raise AxisConfigError(f"axis {self.name}: node {self.node_id}: mode display 0x6061 = {mode}, "
-                                  "expected 10 (CST)")
+            raise AxisConfigError(f"{where}: PDO mapping aborted: {exc}") from None
+        notes.extend(self.pdo_plan.lines())
+        if self._has(cia402.MODES_OF_OPERATION_DISPLAY, writable=False):
+            shown = self._sdo(cia402.MODES_OF_OPERATION_DISPLAY)
+            if shown != mode:
+                raise AxisConfigError(f"{where}: mode not accepted: 0x6061 = {shown} after 0x6060 = {mode} "
+                                      f"({MODE_NAMES[mode]})")
+        self.boot_notes = notes
 
     def _map_pdos(self) -> None:
-        """The RPDOs and TPDOs of the mapping, every other PDO off (canopen's PdoMap writes)."""
-        node = self.node
-        node.rpdo.read()
-        node.tpdo.read()
-        for maps, wanted, base in ((node.rpdo, self._rpdo_entries, RPDO_BASE),
-                                   (node.tpdo, self._tpdo_entries, TPDO_BASE)):
-            for n, pdo in maps.map.items():
-                pdo.clear()
-                if n <= len(wanted):
-                    for index, sub in wanted[n - 1]:
-                        pdo.add_variable(index, sub)
-                    pdo.cob_id = base[n - 1] + self.node_id
-                    pdo.enabled = True
-                    if maps is node.rpdo and n == 2:
-                        pdo.trans_type = 255  # minimal's controlword: event-driven, taken on reception
-                    else:
-                        pdo.trans_type = 1  # synchronous, every SYNC
-                        if maps is node.rpdo and 5 in pdo.com_record.od:
-                            pdo.event_timer = self.rpdo_timeout_ms  # the drive's deadline on our cyclic RPDO
-                else:
-                    pdo.enabled = False
-                pdo.save()
-                if maps is node.tpdo and pdo.enabled:
-                    # save() subscribed canopen's own decoder (a lock and notify_all per frame); the
-                    # cycle decodes the TPDOs itself (_tpdo_callback): keep the per-cycle path one call
-                    if pdo.on_message in self.network.subscribers.get(pdo.cob_id, ()):
-                        self.network.unsubscribe(pdo.cob_id, pdo.on_message)
+        """The PDO plan written by SDO (CiA 301 7.5.2.36: invalidate, sub 0 = 0, entries, sub 0 = n, validate;
+        a fixed mapping left as it is, a read-only COB-ID or transmission type used as the drive has it); every
+        other PDO disabled, or its mapping emptied where its COB-ID is read-only."""
+        used = [(p.slot, p) for p in (*self.pdo_plan.rx, *self.pdo_plan.tx)]
+        for slot, p in [*used, *((s, None) for s in self.pdo_plan.unused)]:
+            comm, mapping = slot.comm, slot.comm + 0x200
+            current = self._sdo(comm, 1)
+            keep = current & 0x40000000  # the RTR bit as the drive has it
+            if slot.cob_writable:
+                cob = p.cob_id if p is not None else current & 0x7FF
+                self._sdo(comm, 1, value=cob | 0x80000000 | keep)
+            if p is None:
+                if slot.fixed is None:
+                    self._sdo(mapping, 0, value=0)
+                continue
+            if slot.type_writable:
+                self._sdo(comm, 2, value=p.trans_type)
+            if slot.rx and p.trans_type <= 240 and slot.event_timer:
+                self._sdo(comm, 5, value=self.rpdo_timeout_ms)  # the drive's deadline on our cyclic RPDO
+            if slot.fixed is None:
+                self._sdo(mapping, 0, value=0)
+                for k, entry in enumerate(p.entries):
+                    self._sdo(mapping, k + 1, value=entry[0] << 16 | entry[1] << 8 | entry_bits(self.od, entry))
+                self._sdo(mapping, 0, value=len(p.entries))
+            if slot.cob_writable:
+                self._sdo(comm, 1, value=p.cob_id | keep)
 
     def read_back_mapping(self) -> dict[str, list[int]]:
         """The mapping entries the drive holds now, read by SDO (a commissioning check)."""
         out = {}
-        for name, base, n in (("rpdo", cia402.RPDO_MAP, len(self._rpdo_entries)), ("tpdo", cia402.TPDO_MAP, 2)):
-            for i in range(n):
-                count = self._sdo(base + i, 0)
-                out[f"{name}{i + 1}"] = [self._sdo(base + i, s + 1) for s in range(count)]
+        for p in (*self.pdo_plan.rx, *self.pdo_plan.tx):
+            mapping = p.slot.comm + 0x200
+            count = self._sdo(mapping, 0)
+            out[p.slot.name.lower()] = [self._sdo(mapping, s + 1) for s in range(count)]
         return out

@@ -1,7 +1,11 @@
-"""CanopenAxis: the Axis protocol over a CiA 402 drive in cyclic synchronous torque mode.
+"""CanopenAxis: the Axis protocol over a CiA 402 drive in a torque mode.
 
-Boot (NMT reset, boot-up awaited), identity 0x1018 checked against the configuration, configuration by
-SDO (mode 10 = CST, PDO mapping through canopen's PdoMap, SYNC period, heartbeat), then once per cycle:
+What the drive offers decides the bring-up (driver/capabilities.py: the essentials, else one line before
+anything moves; cyclic synchronous torque, else profile torque with synchronous RPDOs; the fallback for
+each optional object said at boot) and the PDOs it carries (driver/pdo_plan.py, within the drive's
+limits). Boot (axis_boot.py: NMT reset, boot-up awaited), identity 0x1018 checked against the
+configuration, configuration by SDO (the mode, the ``sdo_init`` writes, the PDO plan, SYNC period and
+heartbeat where the drive has them), then once per cycle:
 SYNC -> TPDOs in (statusword, position, velocity, torque) -> the controller -> RPDO out (controlword,
 target torque in per mille of the rated effort; with the minimal mapping the controlword goes in an
 event-driven RPDO2, sent when it changes, again each cycle while the drive has not reached the state
@@ -34,7 +38,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import can
@@ -44,16 +48,16 @@ from drivectl.driver import cia402
 from drivectl.driver.axis import LAST_RESORTS, AxisConfigError, AxisError, FaultKind, Feedback
 from drivectl.driver.axis_boot import AxisBoot, Identity
 from drivectl.driver.axis_stop import AxisStop
+from drivectl.driver.capabilities import DriveRefused, assess
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     NMT_COB_ID,
-    RPDO_BASE,
     SYNC_COB_ID,
-    TPDO_BASE,
     NmtCommand,
     NmtState,
 )
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.enable_check import enable_blocker
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
 from drivectl.driver.pdo import PdoLayout
@@ -67,6 +71,8 @@ from drivectl.driver.pdo_mappings import (  # noqa: F401 - re-exported: the mapp
     RPDO_ENTRIES,
     TPDO_ENTRIES,
 )
+from drivectl.driver.pdo_plan import PdoPlan
+from drivectl.driver.pdo_plan import plan as plan_pdos
 from drivectl.driver.sync_clock import SyncClock
 from drivectl.driver.units import EffortScale, Encoder
 
@@ -74,6 +80,11 @@ __all__ = ["CanopenAxis", "Identity", "SyncClock"]
 
 #: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
 _HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
+
+#: what a cyclic RPDO's entry carries: the controlword, the target torque, or zero (a dummy, or an object a
+#: fixed mapping adds)
+_RX_CW, _RX_TT, _RX_ZERO = 0, 1, 2
+_RX_KIND = {cia402.CONTROLWORD: _RX_CW, cia402.TARGET_TORQUE: _RX_TT}
 
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
@@ -103,6 +114,8 @@ class CanopenAxis(AxisBoot, AxisStop):
         max_effort: float = math.inf,
         last_resort: str = "nmt-reset",
         mapping: str = "full",
+        rated_effort_source: str | None = "the configuration",
+        sdo_init: Sequence[tuple[int, int, int]] = (),
     ):
         self.name = name
         self.dt = dt
@@ -141,9 +154,18 @@ class CanopenAxis(AxisBoot, AxisStop):
             # configparser's messages run over several lines (a line per offending line): keep the first
             reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0].rstrip(":")
             raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {reason}") from None
-        missing = [f"0x{i:04X}" for i in cia402.REQUIRED_OBJECTS if i not in od]
-        if missing:
-            raise AxisConfigError(f"axis {name}: EDS {eds}: missing required object(s) {', '.join(missing)}")
+        where = f"axis {name}: EDS {eds}"
+        if mapping not in MAPPINGS:
+            raise ValueError(f"axis {name}: mapping: expected {', '.join(MAPPINGS)}, got {mapping!r}")
+        # what the drive offers (the essentials, else one line and nothing moves) and the PDOs it can carry
+        self.capabilities = assess(od, where)
+        self.pdo_plan = plan_pdos(od, mapping, node_id, where)
+        if not self.capabilities.rated_effort_from_drive and rated_effort_source is None:
+            raise DriveRefused(f"{where}: drive has no rated torque 0x6076: set axes.{name}.rated_effort (the effort "
+                               "of 1000 per mille of 0x6071, from the motor's data) in the configuration")
+        self.rated_effort_source = rated_effort_source
+        self.sdo_init = tuple(sdo_init)
+        self.boot_notes: list[str] = []  # what the boot chose and what the drive lacks (said at boot)
         self.od = od
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
@@ -164,29 +186,11 @@ class CanopenAxis(AxisBoot, AxisStop):
         self._cycle = self.clock.cycle
         self._consumed = self.clock.cycle  # the cycle whose TPDOs the last read() used
         self._controlword = 0
-        self._rpdo_cob = RPDO_BASE[0] + node_id
-        if mapping not in MAPPINGS:
-            raise ValueError(f"axis {name}: mapping: expected {', '.join(MAPPINGS)}, got {mapping!r}")
         self.mapping = mapping
-        self._rpdo_entries = MINIMAL_RPDO_ENTRIES if mapping == "minimal" else (RPDO_ENTRIES,)
-        self._rpdo = PdoLayout.from_entries(od, self._rpdo_entries[0])
-        # minimal: the controlword's event-driven RPDO2, and the controlword it last carried (None: none yet,
-        # so the first cycle after connect() sends it)
-        self._cw_rpdo = PdoLayout.from_entries(od, self._rpdo_entries[1]) if mapping == "minimal" else None
-        self._cw_cob = RPDO_BASE[1] + node_id
-        self._cw_sent: int | None = None
-        self._cw_age = 0  # cycles since the last RPDO2
-        self._cw_resends = 0  # resends left while the drive has not reached the state the controlword asks for
-        self._tpdo_entries = {"compact": COMPACT_TPDO_ENTRIES, "minimal": MINIMAL_TPDO_ENTRIES}.get(mapping,
-                                                                                                  TPDO_ENTRIES)
-        self._tpdo = [PdoLayout.from_entries(od, e) for e in self._tpdo_entries]
-        self._tpdo_cob = [TPDO_BASE[i] + node_id for i in range(len(self._tpdo_entries))]
-        self._fresh = [False] * len(self._tpdo_entries)
-        self._raw = [tuple(0 for _ in e) for e in self._tpdo_entries]
-        self._prev_counts: tuple[int, int] | None = None  # compact, minimal: (counts, cycle) of the last sample
+        self._setup_pdos(self.pdo_plan)
         # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
         # reset does not stack a second handler per TPDO (each would count a late frame again)
-        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo_entries))]
+        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo))]
         self._arrived = threading.Event()
         self._last_heartbeat = 0
         self.heartbeat_state: int | None = None
@@ -205,6 +209,37 @@ class CanopenAxis(AxisBoot, AxisStop):
         #: :attr:`power` is the drive's own report of this cycle (TPDO) or of an SDO read since
         self.state_fresh = False
         self.state_source = ""  # "TPDO" or "SDO": where the last confirmed statusword came from
+
+    def _setup_pdos(self, plan: PdoPlan) -> None:
+        """The per-cycle structures of the PDO plan: what each cyclic RPDO carries, where the statusword,
+        position, velocity and torque actual sit in the TPDOs."""
+        od = self.od
+        self._cyclic_rx: list[tuple[int, object, tuple[int, ...]]] = []
+        self._cw_rpdo = None  # minimal: the controlword's event-driven RPDO (None: it rides a cyclic one)
+        self._cw_cob = 0
+        for p in plan.rx:
+            layout = PdoLayout.from_entries(od, p.entries)
+            if p.trans_type > 240:
+                self._cw_rpdo, self._cw_cob = layout, p.cob_id
+                continue
+            kinds = tuple(_RX_KIND.get(e[0], _RX_ZERO) for e in p.entries)
+            self._cyclic_rx.append((p.cob_id, layout.codec, kinds))
+        self._rx_cobs = tuple(p.cob_id for p in plan.rx)
+        # the controlword the event-driven RPDO last carried (None: none yet, so the first cycle after connect()
+        # sends it)
+        self._cw_sent: int | None = None
+        self._cw_age = 0  # cycles since the last controlword RPDO
+        self._cw_resends = 0  # resends left while the drive has not reached the state the controlword asks for
+        self._tpdo = [PdoLayout.from_entries(od, p.entries) for p in plan.tx]
+        self._tpdo_cob = [p.cob_id for p in plan.tx]
+        self._fresh = [False] * len(self._tpdo)
+        self._raw = [tuple(0 for _ in layout.entries) for layout in self._tpdo]
+        at = {e: (i, j) for i, p in enumerate(plan.tx) for j, e in enumerate(p.entries)}
+        self._at_sw = at[(cia402.STATUSWORD, 0)]
+        self._at_pos = at[(cia402.POSITION_ACTUAL, 0)]
+        self._at_vel = at.get((cia402.VELOCITY_ACTUAL, 0))
+        self._at_tq = at.get((cia402.TORQUE_ACTUAL, 0))
+        self._prev_counts: tuple[int, int] | None = None  # velocity derived: (counts, cycle) of the last sample
 
     # -- the cycle ---------------------------------------------------------------------------------
     def _tpdo_callback(self, i: int):
@@ -258,15 +293,13 @@ class CanopenAxis(AxisBoot, AxisStop):
 
     @property
     def _watched_cobs(self) -> tuple[int, ...]:
-        if self._cw_rpdo is not None:
-            return (self._rpdo_cob, self._cw_cob, SYNC_COB_ID, NMT_COB_ID)
-        return (self._rpdo_cob, SYNC_COB_ID, NMT_COB_ID)
+        return (*self._rx_cobs, SYNC_COB_ID, NMT_COB_ID)
 
     def _on_foreign(self, can_id: int, data: bytes, timestamp: float) -> None:
         """A frame on a COB-ID only the master sends (it never receives its own): someone else sent it."""
         if not self._connected or self._foreign is not None:
             return
-        if can_id == self._rpdo_cob or (can_id == self._cw_cob and self._cw_rpdo is not None):
+        if can_id in self._rx_cobs:
             self._foreign = (FaultKind.ROGUE_RPDO, f"an RPDO on 0x{can_id:03X} that the master did not send "
                              "(a second producer: the drive takes whichever came last)")
         elif can_id == SYNC_COB_ID:
@@ -330,11 +363,13 @@ class CanopenAxis(AxisBoot, AxisStop):
             for i in range(len(fresh)):
                 fresh[i] = False
             enc = self.encoder
-            if self._prev_counts is None:
-                (sw, counts), (vel_counts, _torque) = self._raw
-                velocity = enc.from_counts(vel_counts)
-            else:  # compact, minimal: the velocity from this position and the last one (as SimAxis derives it)
-                sw, counts = self._raw[0][:2]
+            raw = self._raw
+            (si, sj), (pi, pj) = self._at_sw, self._at_pos
+            sw, counts = raw[si][sj], raw[pi][pj]
+            if self._at_vel is not None:
+                vi, vj = self._at_vel
+                velocity = enc.from_counts(raw[vi][vj])
+            else:  # velocity derived from this position and the last one (as SimAxis derives it)
                 velocity = enc.velocity(counts, self._prev_counts[0], (cycle - self._prev_counts[1]) * self.dt)
                 self._prev_counts = (counts, cycle)
             self.statusword = sw
@@ -358,10 +393,11 @@ class CanopenAxis(AxisBoot, AxisStop):
     @property
     def torque_actual(self) -> float:
         """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""
-        if self.mapping == "minimal":
+        if self._at_tq is None:
             return math.nan
+        i, j = self._at_tq
         try:
-            return self.scale.from_permille(self._raw[0][2] if self.mapping == "compact" else self._raw[1][1])
+            return self.scale.from_permille(self._raw[i][j])
         except (IndexError, TypeError):
             return math.nan
 
@@ -383,24 +419,24 @@ class CanopenAxis(AxisBoot, AxisStop):
 
     def write(self, effort: float) -> None:
         try:
-            if self._cw_rpdo is None:
-                self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self._controlword,
-                                                                                   self.scale.to_permille(effort)))
-                return
             cw = self._controlword
-            self._cw_age += 1
-            # minimal: the controlword when it changes (in the same cycle); then again each cycle while the drive
-            # has not reached the state it asks for (a lost frame must not stall a transition: CW_RESEND_CYCLES,
-            # the cycles a master waits for one), and every CW_REFRESH_CYCLES whatever (a lost halt or reset edge)
-            if cw != self._cw_sent:
-                self._cw_resends = CW_RESEND_CYCLES
-                self._send_cw(cw)
-            elif self._cw_age >= CW_REFRESH_CYCLES:
-                self._send_cw(cw)
-            elif self._cw_resends and self.power is not self.master.target:
-                self._cw_resends -= 1
-                self._send_cw(cw)
-            self.network.send_message(self._rpdo_cob, self._rpdo.codec.pack(self.scale.to_permille(effort)))
+            if self._cw_rpdo is not None:
+                self._cw_age += 1
+                # the controlword when it changes (in the same cycle); then again each cycle while the drive has not
+                # reached the state it asks for (a lost frame must not stall a transition: CW_RESEND_CYCLES, the
+                # cycles a master waits for one), and every CW_REFRESH_CYCLES whatever (a lost halt or reset edge)
+                if cw != self._cw_sent:
+                    self._cw_resends = CW_RESEND_CYCLES
+                    self._send_cw(cw)
+                elif self._cw_age >= CW_REFRESH_CYCLES:
+                    self._send_cw(cw)
+                elif self._cw_resends and self.power is not self.master.target:
+                    self._cw_resends -= 1
+                    self._send_cw(cw)
+            values = (cw, self.scale.to_permille(effort), 0)
+            send = self.network.send_message
+            for cob, codec, kinds in self._cyclic_rx:
+                send(cob, codec.pack(*[values[k] for k in kinds]))
         except can.CanError as exc:
             raise AxisError(f"axis {self.name}: RPDO not sent: {exc}", FaultKind.BUS_ERROR) from None
 
@@ -440,6 +476,24 @@ class CanopenAxis(AxisBoot, AxisStop):
         else:
             self.clock.stop_periodic()
         self._paced = wall is not None
+
+    def enable_blocker(self) -> str:
+        """Why the drive is not Operation Enabled, from what it reports now by SDO (statusword, 0x603F or the last
+        EMCY, 0x6061): driver/enable_check.py."""
+        def read(index: int) -> int | None:
+            if index not in self.od:
+                return None
+            try:
+                return self._sdo(index)
+            except AxisError:
+                return None
+
+        sw = read(cia402.STATUSWORD)
+        if sw is None:
+            return f"node {self.node_id}: no statusword by SDO (the drive does not answer)"
+        return enable_blocker(sw, error_code=read(cia402.ERROR_CODE),
+                              emcy_code=self.last_emcy[0] if self.last_emcy else None,
+                              mode_display=read(cia402.MODES_OF_OPERATION_DISPLAY), mode=getattr(self, "mode", None))
 
     def read_error_code(self) -> int:
         """0x603F by SDO."""

@@ -19,7 +19,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivectl.driver.axis import Axis
+from drivectl.controllers.runtime.timing import Deadline, axis_deadline
+from drivectl.driver.axis import Axis, AxisConfigError
 from drivectl.driver.canopen_axis import CanopenAxis, SyncClock
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
 from drivectl.driver.network import (
@@ -51,6 +52,8 @@ class Machine:
     drives: dict[str, EmulatedDrive] = field(default_factory=dict)
     injectors: dict[str, FaultInjector] = field(default_factory=dict)
     master_bus: FaultyBus | None = None
+    #: each axis's deadline (controllers/runtime/timing.py): written to its drive as 0x1400:05
+    deadlines: dict[str, Deadline] = field(default_factory=dict)
     _closers: list[Any] = field(default_factory=list)
 
     def let_drives_run(self, cycles: int, until_safe: bool = False) -> dict[str, int | None]:
@@ -205,7 +208,7 @@ def open_machine(
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
                                  initial_position=start.get(name, 0.0), io=ac.emulator,
                                  derived_velocity=mapping != "full", torque_mapped=mapping != "minimal")
-        return Machine(axes, specs, "sim (SimAxis, no bus)")
+        return Machine(axes, specs, "sim (SimAxis, no bus)", deadlines=axis_deadlines(cfg, names, specs))
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)
     lockstep = Lockstep()
@@ -228,7 +231,8 @@ def open_machine(
                 mine = [f for f in faults if (f.axis or names[0]) == name]
                 injector = machine.injectors[name] = FaultInjector(mine, bus=machine.master_bus)
             drive = EmulatedDrive(emu_net, ac.node_id, specs[name].build(dt), rated_effort=ac.rated_effort,
-                                  resolution=ac.encoder_m_per_count, force_noise=noise, seed=seed + i,
+                                  eds=readable_eds(name, ac.eds), resolution=ac.encoder_m_per_count,
+                                  force_noise=noise, seed=seed + i,
                                   initial_position=start.get(name, 0.0), faults=injector,
                                   io=ac.emulator)
             machine.drives[name] = drive
@@ -247,6 +251,19 @@ def _lockstep_end(lockstep: Lockstep, channel: str, paced: bool) -> Any:
     return open_bus("virtual", channel) if paced else lockstep.bus(channel)
 
 
+def readable_eds(name: str, eds: str) -> str:
+    """``eds`` when canopen reads it; else the one line the master would say, before any drive exists (the emulated
+    drive impersonates the axis's EDS)."""
+    import canopen
+
+    try:
+        canopen.import_od(str(eds), 1)
+    except Exception as exc:  # canopen raises many types for a bad file
+        reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0].rstrip(":")
+        raise AxisConfigError(f"axis {name}: EDS {eds}: cannot be read: {reason}") from None
+    return eds
+
+
 def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
                      specs: dict[str, PlantSpec]) -> None:
     """One CanopenAxis per axis on ``net``, sharing one SYNC clock; each booted and configured."""
@@ -254,17 +271,35 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
 
     clock = SyncClock(net)
     clock.allow_periodic = cfg.bus.sync == "auto"
+    machine.deadlines = axis_deadlines(cfg, names, specs)
     for name in names:
         ac = cfg.axis(name)
         axis = CanopenAxis(net, ac.node_id, name=name, dt=cfg.cycle_s, effort_unit=specs[name].effort_unit,
                            eds=ac.eds, encoder=Encoder(ac.encoder_m_per_count),
                            effort_scale=EffortScale(ac.rated_effort), clock=clock,
-                           max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=ac.rpdo_timeout_ms,
+                           max_lost_cycles=ac.max_lost_cycles, rpdo_timeout_ms=machine.deadlines[name].ms,
                            max_effort=ac.limits.max_effort, last_resort=ac.last_resort,
-                           mapping=resolve_mapping(cfg, len(names)))
+                           mapping=resolve_mapping(cfg, len(names)),
+                           rated_effort_source=ac.rated_effort_source,
+                           sdo_init=ac.sdo_init)
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)
+
+
+def axis_deadlines(cfg: MachineConfig, names: Sequence[str], specs: dict[str, PlantSpec]) -> dict[str, Deadline]:
+    """Each axis's deadline (docs/timing.md): ``rpdo_timeout_ms`` where configured (0: the drive does not
+    watch), else from its physics: the plant's mass, ``limits.max_effort`` and ``limits.following_error_m``."""
+    out = {}
+    for name in names:
+        ac = cfg.axis(name)
+        try:
+            mass = specs[name].nominal_mass
+        except Exception:  # noqa: BLE001 - a model without a mass: the deadline falls back to two cycles
+            mass = None
+        out[name] = axis_deadline(name, cfg.cycle_s, mass=mass, max_effort=ac.limits.max_effort,
+                                  window=ac.limits.following_error, override_ms=ac.rpdo_timeout_ms)
+    return out
 
 
 def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, PlantSpec],
@@ -338,7 +373,7 @@ def open_bus_session(cfg: MachineConfig, effects: Sequence[tuple[str, dict[str, 
         specs = plant_specs(cfg, list(cfg.axes), None, effects)
         for name, ac in cfg.axes.items():
             drive = EmulatedDrive(emu, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
-                                  resolution=ac.encoder_m_per_count)
+                                  eds=readable_eds(name, ac.eds), resolution=ac.encoder_m_per_count)
             session.drives[name] = drive
         for drive in session.drives.values():
             drive.boot()

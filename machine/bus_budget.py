@@ -41,6 +41,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 from drivectl.machine.config import ConfigError, MachineConfig
 
@@ -139,9 +141,49 @@ def resolve_mapping(cfg: MachineConfig, axes: int) -> str:
     return AUTO_ORDER[-1]
 
 
+def axis_frames(cfg: MachineConfig, name: str, mapping: str) -> tuple[tuple[str, int], ...]:
+    """The cyclic frames (what, data bytes) of axis ``name`` under ``mapping``, as its drive's PDO plan makes them
+    (driver/pdo_plan.py: a fixed mapping may carry more, a one-entry PDO split a group); the nominal mapping's
+    where the EDS cannot be read (the axis then refuses it at connect, naming the file). A drive lacking an
+    essential is refused here, in one line, before anything is configured."""
+    od = _eds(cfg.axis(name).eds, cfg.axis(name).node_id)
+    if od is None:
+        return MAPPINGS[mapping]
+    from drivectl.driver.pdo_plan import plan
+
+    frames = plan(od, mapping, cfg.axis(name).node_id, f"axis {name}: EDS {cfg.axis(name).eds}").frames()
+    return tuple((what, n) for what, n, cyclic in frames if cyclic)
+
+
+_EDS_CACHE: dict[tuple[str, int, int], Any] = {}
+
+
+def _eds(path: str, node_id: int) -> Any:
+    import canopen
+
+    try:
+        key = (str(path), Path(path).stat().st_mtime_ns, node_id)
+    except OSError:
+        return None
+    if key not in _EDS_CACHE:
+        try:
+            _EDS_CACHE[key] = canopen.import_od(str(path), node_id)
+        except Exception:  # noqa: BLE001 - CanopenAxis names the file and the reason
+            return None
+    return _EDS_CACHE[key]
+
+
 def machine_load(cfg: MachineConfig, names: Sequence[str] | None = None) -> BusLoad:
-    n = len(names) if names is not None else len(cfg.axes)
-    return bus_load(n, cfg.cycle_s, cfg.bus.bitrate, resolve_mapping(cfg, n))
+    """The load of the axes ``names`` (default all), each with the frames its drive's PDO plan makes."""
+    names = list(names) if names is not None else list(cfg.axes)
+    mapping = resolve_mapping(cfg, len(names))
+    sync = frame_bits(0)
+    nominal, bound = sync[0], sync[1]
+    for name in names:
+        for _, n in axis_frames(cfg, name, mapping):
+            b = frame_bits(n)
+            nominal, bound = nominal + b[0], bound + b[1]
+    return BusLoad(len(names), mapping, cfg.cycle_s, cfg.bus.bitrate, nominal, bound)
 
 
 def check_bus_load(cfg: MachineConfig, names: Sequence[str]) -> BusLoad:

@@ -44,12 +44,14 @@ controller = "mbc"              # mbc | asmc | pid-nftsm | smc | vprl | pid | pi
 profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
 max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
-rpdo_timeout_ms = 2             # the drive's deadline on our RPDO (0x1400:05): it stops by itself; 0 = off
+# rpdo_timeout_ms = 6           # the drive's deadline on our RPDO (0x1400:05); default: from the axis's physics
+                                # (docs/timing.md: x 6 ms, z 6 ms); 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
-# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, 0.03 um off
-# where a move ends against 4 um (ASMC has no integral action against the Coulomb friction), with an
-# unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py, docs/precision.md). Its du rms over
+# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
+# 0.06 um after a move against 4 um (paper 004's law has no integral action against the Coulomb friction;
+# docs/standstill.md), with an unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py,
+# docs/precision.md). Its du rms over
 # the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
 # (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle
 # (over 10.5 s: 1.31 against 1.38). `bode` measures it about a constant-velocity bias (the axis slides,
@@ -74,6 +76,7 @@ profile = "circle"
 encoder_m_per_count = 76.29e-9
 [axes.y.controller_settings]
 law = 14
+standstill_gain = 300.0         # N/(um s): integral action at rest, where the law alone stands off (docs/standstill.md)
 [axes.y.limits]
 position_m = [-0.1, 0.1]
 max_effort = 2000.0
@@ -217,7 +220,7 @@ class AxisConfig:
     eds: str = DEFAULT_EDS
     max_lost_cycles: int = 3  # consecutive cycles without TPDOs bridged before it is a fault
     last_resort: str = "nmt-reset"  # the stop's last escalation (driver/canopen_axis.py LAST_RESORTS)
-    rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: two cycles
+    rpdo_timeout_ms: int | None = None  # the drive's deadline on our RPDO (0x1400:05); None: from the physics
     #: limits the file left out: taken from the drive (0x6065/0x6066, 0x607D) when it has them
     limits_from_drive: frozenset[str] = frozenset()
     #: the plant the controller believes (built-in name or TOML file); None: the same as the plant
@@ -227,6 +230,11 @@ class AxisConfig:
     motion: Any = None
     homing: Any = None
     emulator: Any = None
+    #: [axes.NAME] sdo_init: (index, sub-index, value) written before enable and read back (vendor objects)
+    sdo_init: tuple[tuple[int, int, int], ...] = ()
+    #: where rated_effort came from ("FILE: axes.NAME.rated_effort"), None: the built-in default (a drive without
+    #: 0x6076 then refuses: the effort of 1000 per mille must come from the motor's data)
+    rated_effort_source: str | None = field(default=None, compare=False)
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -313,7 +321,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
                    "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
-                   "homing", "emulator", "last_resort"}
+                   "homing", "emulator", "last_resort", "sdo_init"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -387,6 +395,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             model=_string(src, f"{k}.model", raw["model"]) if "model" in raw else None,
             **_session_tables(src, k, raw),
             last_resort=_choice(src, f"{k}.last_resort", raw.get("last_resort", "nmt-reset"), LAST_RESORTS),
+            sdo_init=_sdo_init(src, f"{k}.sdo_init", raw.get("sdo_init", [])),
+            rated_effort_source=f"{src}: {k}.rated_effort" if "rated_effort" in raw else None,
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -395,6 +405,27 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
     return MachineConfig(src, cycle, axes, bus, checks)
+
+
+def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:
+    """[[index, sub, value], ...] or [[axes.NAME.sdo_init]] tables of index, sub, value: integers."""
+    if not isinstance(raw, list):
+        raise ConfigError(f"{src}: {key}: expected a list of [index, sub, value]")
+    out = []
+    for n, item in enumerate(raw):
+        if isinstance(item, dict):
+            extra = set(item) - {"index", "sub", "value"}
+            if extra or "index" not in item or "value" not in item:
+                raise ConfigError(f"{src}: {key}[{n}]: expected index, sub and value, got {sorted(item)}")
+            item = [item["index"], item.get("sub", 0), item["value"]]
+        if not (isinstance(item, list) and len(item) == 3 and all(isinstance(v, int) and not isinstance(v, bool)
+                                                                  for v in item)):
+            raise ConfigError(f"{src}: {key}[{n}]: expected [index, sub, value] (integers), got {item!r}")
+        index, sub, value = item
+        if not 0x1000 <= index <= 0xFFFF or not 0 <= sub <= 0xFF:
+            raise ConfigError(f"{src}: {key}[{n}]: index 0x1000..0xFFFF and sub 0..255, got {index:#x}:{sub}")
+        out.append((index, sub, value))
+    return tuple(out)
 
 
 def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:

@@ -85,10 +85,13 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
             t.add(tomlkit.comment(f'model = "{ac.plant}"  (not set: the controller believes the plant)'))
         t.add("max_lost_cycles", ac.max_lost_cycles)
         t.add("last_resort", ac.last_resort)
+        if ac.sdo_init:
+            t.add("sdo_init", [list(entry) for entry in ac.sdo_init])
         if ac.rpdo_timeout_ms is not None:
             t.add("rpdo_timeout_ms", ac.rpdo_timeout_ms)
         else:
-            t.add(tomlkit.comment("rpdo_timeout_ms not set: the drive's RPDO deadline (0x1400:05) is two cycles"))
+            t.add(tomlkit.comment("rpdo_timeout_ms not set: the RPDO deadline (0x1400:05) is from the physics "
+                                  "(docs/timing.md)"))
         settings = tomlkit.table()
         for k, v in ac.controller_settings.items():
             settings.add(k, _plain(v))

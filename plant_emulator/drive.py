@@ -65,6 +65,10 @@ class DriveModel:
         # False while no mode is selected that this drive runs (0x6060 = 0, CiA 402: no torque then);
         # SimAxis has no 0x6060 and is always in cyclic synchronous torque
         self.mode_ok = True
+        #: a safe torque off (STO) input active: the drive does not take Shutdown (stays Switch On Disabled)
+        self.sto = False
+        #: the DC link has voltage (False: statusword bit 4 clear, Enable Operation not taken)
+        self.voltage = True
         #: switches and mechanical stops (controllers/runtime/homing.py EmulatorIO): 0x60FD and hard stops
         self.io = io
         #: the holding brake, when the axis has one (plant_emulator/brake.py): engaged at power-on
@@ -164,7 +168,12 @@ class DriveModel:
             return
         cmd = decode_command(cw)
         if cmd is not None:
-            self.power = DRIVE_TRANSITIONS.get((power, cmd), power)
+            new = DRIVE_TRANSITIONS.get((power, cmd), power)
+            if self.sto and power is PowerState.SWITCH_ON_DISABLED:
+                new = power  # safe torque off: held in Switch On Disabled whatever the controlword
+            elif not self.voltage and new is PowerState.OPERATION_ENABLED:
+                new = PowerState.SWITCHED_ON if power is PowerState.READY_TO_SWITCH_ON else power
+            self.power = new
 
     def fault(self, code: int) -> None:
         """Enter Fault Reaction Active (zero torque now), Fault at the next SYNC; 0x603F = code."""

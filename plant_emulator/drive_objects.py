@@ -4,15 +4,17 @@ node402.EmulatedDrive)."""
 
 from __future__ import annotations
 
-import struct
-
 import canopen
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import HEARTBEAT_BASE, SDO_ABORT_VALUE_RANGE
+from drivectl.driver.enable_check import VOLTAGE_ENABLED
 from drivectl.driver.units import EffortScale
 from drivectl.plant_emulator.drive_constants import DIGITAL_INPUTS, FAULTED
 from drivectl.plant_emulator.faults import SDO_ABORT_GENERAL
+
+#: the modes in which the emulated drive puts the setpoint on the plant
+TORQUE_MODES = (int(cia402.Mode.CYCLIC_SYNC_TORQUE), int(cia402.Mode.PROFILE_TORQUE))
 
 
 class DriveObjects:
@@ -24,18 +26,18 @@ class DriveObjects:
         if 0x1400 <= index <= 0x1BFF:
             self.rules.check(index, subindex, data)
         elif index == cia402.COB_ID_SYNC:
-            value = struct.unpack("<I", data)[0]
+            value = od.decode_raw(data)  # (as the EDS types it: an impersonated drive's types are its own)
             if value & 0x60000000 or value & 0x1FFFF800:  # bit 30: this drive cannot produce SYNC; 29: 29-bit
                 raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
         elif index == cia402.COMM_CYCLE_PERIOD:
-            value = struct.unpack("<I", data)[0]
+            value = od.decode_raw(data)
             # the drive's control cycle is its plant's: it can follow a SYNC of that period (or none)
             if value not in (0, round(self.cycle_ms * 1000)):
                 raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
         elif index == cia402.MODES_OF_OPERATION:
-            if not self._mode_supported(struct.unpack("<b", data)[0]):
+            if not self._mode_supported(od.decode_raw(data)):
                 raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
-        elif index == cia402.RATED_TORQUE and struct.unpack("<I", data)[0] == 0:
+        elif index == cia402.RATED_TORQUE and od.decode_raw(data) == 0:
             raise canopen.SdoAbortedError(SDO_ABORT_VALUE_RANGE)
 
     def _after_write(self, index: int, sub: int) -> None:
@@ -43,8 +45,8 @@ class DriveObjects:
         value = self._value(index, sub)
         if 0x1400 <= index <= 0x1BFF:
             self._load_mapping()  # a new mapping is effective the moment it is made valid
-            if index == cia402.RPDO_COMM and sub == 5:
-                self._rpdo_timeout_ms = value
+            if cia402.RPDO_COMM <= index < cia402.RPDO_MAP and sub == 5:
+                self._rpdo_timeout_ms, self._deadline_comm = value, index
                 self._ms_since_rpdo = None  # CiA 301: monitoring starts at the next RPDO
         elif index == cia402.CONTROLWORD:
             self.controlword = value
@@ -77,13 +79,13 @@ class DriveObjects:
     def _mode_supported(self, mode: int) -> bool:
         if mode == 0:
             return True  # no mode: allowed, the drive then gives no torque
-        supported = self._od_default(cia402.SUPPORTED_DRIVE_MODES)
-        return 0 < mode <= 32 and bool(supported & (1 << (mode - 1)))
+        return 0 < mode <= 32 and bool(self.supported_modes & (1 << (mode - 1)))
 
     def _set_mode(self, mode: int) -> None:
         self.mode = mode
-        # this drive runs cyclic synchronous torque only: any other mode (0 included) gives no torque
-        self.drive.mode_ok = mode == cia402.Mode.CYCLIC_SYNC_TORQUE
+        # the plant is driven in torque: cyclic synchronous torque, or profile torque (the setpoint taken at the
+        # SYNC as in cst, no torque slope 0x6087); any other mode (0 included) gives no torque
+        self.drive.mode_ok = mode in TORQUE_MODES
 
     @property
     def error_register(self) -> int:
@@ -114,8 +116,9 @@ class DriveObjects:
         return None
 
     def statusword(self) -> int:
-        return cia402.encode_statusword(self.drive.power, follows=self.drive.following,
-                                        internal_limit=self.internal_limit)
+        sw = cia402.encode_statusword(self.drive.power, follows=self.drive.following,
+                                      internal_limit=self.internal_limit)
+        return sw if self.drive.voltage else sw & ~VOLTAGE_ENABLED
 
     @property
     def reported_position(self) -> float:

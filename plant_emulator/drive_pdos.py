@@ -88,8 +88,8 @@ class DrivePdos:
                     continue
                 self._set_mode(value)
             store.setdefault(index, {})[sub] = bytes(data[offset:offset + width])
-        if rp.comm != cia402.RPDO_COMM:
-            return  # another RPDO (an event-driven controlword, type 255): the deadline watches RPDO1 only
+        if rp.comm != self._deadline_comm:
+            return  # another RPDO (an event-driven controlword, type 255): the deadline watches the one it was set on
         if self._rpdo_timeout_ms:
             self._ms_since_rpdo = 0.0
         self._clear_error(RPDO_TIMEOUT_ERROR)

@@ -36,8 +36,10 @@ import struct
 from pathlib import Path
 
 import canopen
+from canopen.objectdictionary import NUMBER_TYPES
 
 from drivectl.driver import cia402
+from drivectl.driver.capabilities import object_value, supported_modes
 from drivectl.driver.cia301 import (
     HEARTBEAT_BASE,
     NMT_COB_ID,
@@ -72,6 +74,20 @@ from drivectl.plant_emulator.models import Plant
 from drivectl.plant_emulator.pdo_rules import PdoRules, Rpdo, Tpdo
 from drivectl.plant_emulator.remote import deliver, subscribe_remote, unsubscribe_remote  # noqa: F401 - re-exported
 from drivectl.plant_emulator.sdo_server import DriveSdoServer
+
+#: 0x6072 where the drive has none: no clip of its own; 0x605A where it has none: CiA 402's default (quick stop
+#: ramp, then Switch On Disabled)
+NO_TORQUE_LIMIT = 0x7FFF
+QUICK_STOP_DEFAULT = 2
+
+
+def _variables(od: canopen.ObjectDictionary):
+    for index in od.indices:
+        obj = od[index]
+        if isinstance(obj, canopen.objectdictionary.ODVariable):
+            yield obj
+        else:
+            yield from obj.subindices.values()
 
 
 class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
@@ -125,7 +141,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self.scale = EffortScale(rated_effort)
         self._rated_effort = rated_effort
         self.drive = DriveModel(plant, force_noise=force_noise, seed=seed, initial_position=initial_position,
-                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION), io=io)
+                                quick_stop_option=self._od_default(cia402.QUICK_STOP_OPTION,
+                                                                   absent=QUICK_STOP_DEFAULT), io=io)
         self.cycle_ms = plant.dt * 1000.0
         self.boot_delay_ms = float(boot_delay_ms)
         self.sync_loss_ms = sync_loss_ms
@@ -150,6 +167,17 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._errors: set[int] = set()  # active communication errors (EMCY codes) besides a Fault
         self._fault_reported = False
         self._sync_cob = SYNC_COB_ID
+        # what the EDS leaves open, fixed once: the numeric variables with no value (read as 0), the modes
+        # (0x6502, else the modes its objects allow), whether 0x1018 has a serial number
+        self._unset = {(v.index, v.subindex): len(v) // 8 for v in _variables(self.od)
+                       if v.data_type in NUMBER_TYPES and object_value(v) is None and v.readable}
+        self.supported_modes, _ = supported_modes(self.od)
+        self._modes_unset = cia402.SUPPORTED_DRIVE_MODES in self.od and object_value(
+            self.od[cia402.SUPPORTED_DRIVE_MODES]) is None
+        self._unset.pop((cia402.SUPPORTED_DRIVE_MODES, 0), None)
+        ident = self.od[cia402.IDENTITY] if cia402.IDENTITY in self.od else None
+        self._has_serial = ident is not None and not isinstance(ident, canopen.objectdictionary.ODVariable) \
+            and 4 in ident.subindices
         self._restore(application=True)
         network.subscribe(self._sync_cob, self._on_sync)
         subscribe_remote(network, self._sync_cob, self._on_remote)
@@ -163,11 +191,18 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
             lockstep.wall_clocks.append(self.wall_clock)  # ... and on the wall clock while a run is paced
 
     # -- object dictionary helpers -----------------------------------------------------------------
-    def _od_default(self, index: int, sub: int = 0) -> int:
+    def _od_default(self, index: int, sub: int = 0, absent: int | None = None) -> int | None:
+        """What the EDS says index:sub holds at power-on (ParameterValue, else DefaultValue); ``absent`` where
+        the drive has no such object (an impersonated EDS without it: docs/drives.md says what then)."""
+        if index not in self.od:
+            return absent
         obj = self.od[index]
         if not isinstance(obj, canopen.objectdictionary.ODVariable):
-            obj = obj[sub]
-        return obj.default
+            obj = obj.subindices.get(sub)
+            if obj is None:
+                return absent
+        value = object_value(obj)
+        return absent if value is None else value
 
     def _value(self, index: int, sub: int = 0) -> int:
         """The value the drive holds (written, live or the EDS default)."""
@@ -182,23 +217,32 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         for index in list(store):
             if application or 0x1000 <= index <= 0x1FFF:
                 del store[index]
+        # a value the EDS leaves open reads 0 (a device always answers with something)
+        for index, sub in self._unset:
+            store.setdefault(index, {}).setdefault(sub, bytes(self._unset[index, sub]))
+        if self._modes_unset:  # the EDS states no 0x6502: the modes its objects allow
+            store.setdefault(cia402.SUPPORTED_DRIVE_MODES, {})[0] = struct.pack("<I", self.supported_modes)
         # one serial number per emulated drive (the EDS default would make every drive look alike)
-        store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", self.node_id)
-        self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME)
+        if self._has_serial:
+            store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", self.node_id)
+        self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME, absent=0)
         self._heartbeat_cycles = 0
         if self._consumer is not None:
             self.network.unsubscribe(HEARTBEAT_BASE + self._consumer[0], self._on_master_heartbeat)
         self._consumer, self._ms_since_master, self.master_lost = None, None, False
         self._rpdo_timeout_ms, self._ms_since_rpdo = 0, None
-        self._set_sync_cob(self._od_default(cia402.COB_ID_SYNC) & 0x7FF)
+        self._deadline_comm = cia402.RPDO_COMM  # the RPDO whose event timer (0x14xx:05) was written last
+        self._set_sync_cob(self._od_default(cia402.COB_ID_SYNC, absent=SYNC_COB_ID) & 0x7FF)
         self._errors.clear()
         if application:
-            store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(self._rated_effort * 1000))
+            if cia402.RATED_TORQUE in self.od:
+                store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(self._rated_effort * 1000))
             self.scale = EffortScale(self._rated_effort)
-            self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION)
-            self.max_torque = self._od_default(cia402.MAX_TORQUE)
-            self.drive.quick_stop_option = self._od_default(cia402.QUICK_STOP_OPTION)
-            self._set_mode(self._od_default(cia402.MODES_OF_OPERATION))
+            # without 0x6007 a lost master faults the drive (the reaction of most drives without the object)
+            self._abort_option = self._od_default(cia402.ABORT_CONNECTION_OPTION, absent=1)
+            self.max_torque = self._od_default(cia402.MAX_TORQUE, absent=NO_TORQUE_LIMIT)
+            self.drive.quick_stop_option = self._od_default(cia402.QUICK_STOP_OPTION, absent=QUICK_STOP_DEFAULT)
+            self._set_mode(self._od_default(cia402.MODES_OF_OPERATION, absent=0))
             self.controlword = 0
             self.setpoint = 0  # per mille of the rated effort, as received
             d = self.drive

@@ -135,6 +135,10 @@ class PdoRules:
     def _valid(self, comm: int) -> bool:
         return not self.value(comm, 1) & 0x80000000
 
+    def _cob_writable(self, comm: int) -> bool:
+        rec = self.od[comm]
+        return isinstance(rec, odt.ODVariable) or 1 not in rec.subindices or rec.subindices[1].writable
+
     def check(self, index: int, sub: int, data: bytes) -> None:
         rx, comm, mapping = self._parts(index)
         if comm not in self.od:
@@ -162,7 +166,8 @@ class PdoRules:
             return
         if index != mapping:
             return
-        if valid:
+        if valid and self._cob_writable(comm):
+            # invalidate first (CiA 301 7.5.2.36); a drive whose COB-ID is read-only takes sub 0 = 0 as the step
             raise canopen.SdoAbortedError(ABORT_UNSUPPORTED)
         if sub == 0:
             count = data[0]
@@ -204,13 +209,16 @@ class PdoRules:
         if cob & 0x80000000 or count == 0:
             return None
         words = [self.value(comm + 0x200, i + 1) for i in range(count)]
-        return cob, PdoLayout.from_mapping_words(self.od, words)
+        try:
+            return cob, PdoLayout.from_mapping_words(self.od, words)
+        except (KeyError, ValueError):
+            return None  # a default mapping naming an object the drive lacks: no PDO until it is remapped
 
     def rpdos(self) -> list[Rpdo]:
         out = []
         for comm in range(0x1400, 0x1600):
-            if comm not in self.od:
-                break
+            if comm not in self.od or comm + 0x200 not in self.od:
+                continue  # a gap in the drive's PDO numbering
             got = self._mapped(comm)
             if got is None:
                 continue
@@ -226,8 +234,8 @@ class PdoRules:
     def tpdos(self, getter: Callable[[int, int], Callable[[], int]]) -> list[Tpdo]:
         out = []
         for comm in range(0x1800, 0x1A00):
-            if comm not in self.od:
-                break
+            if comm not in self.od or comm + 0x200 not in self.od:
+                continue  # a gap in the drive's PDO numbering
             got = self._mapped(comm)
             if got is None:
                 continue

@@ -1,5 +1,5 @@
 """Issue 7 point 7, the bad-input matrix: configuration, profile, plant, trace and EDS files with a wrong
-type, a missing key, an out-of-range value, a truncated or garbled CSV, an EDS without a required object,
+type, a missing key, an out-of-range value, a truncated or garbled CSV, an EDS without an essential object,
 an SDO abort from the drive while it is configured, and ``config init`` over an existing file.
 
 Every case runs the real CLI entry point in-process and must give exit code 2, exactly one line on stderr
@@ -171,7 +171,7 @@ CASES = [
      ("{path}", "axes.x.limits.max_speed_m_s", "-2.0")),
     ("config-max-lost-cycles-negative", "config", edit(CONFIG, "max_lost_cycles = 3 ", "max_lost_cycles = -1 "),
      BUS, ("{path}", "axes.x.max_lost_cycles", "-1")),
-    ("config-rpdo-timeout-string", "config", edit(CONFIG, "rpdo_timeout_ms = 2 ", 'rpdo_timeout_ms = "2" '), BUS,
+    ("config-rpdo-timeout-string", "config", edit(CONFIG, "# rpdo_timeout_ms = 6 ", 'rpdo_timeout_ms = "2" '), BUS,
      ("{path}", "axes.x.rpdo_timeout_ms", "'2'")),
     ("config-plant-file-missing", "config", edit(CONFIG, 'plant = "rigid-x"', 'plant = "no-such-plant.toml"'), SIM,
      ("{path}", "axes.x.plant", "no-such-plant.toml", "no such plant file")),
@@ -241,7 +241,7 @@ CASES = [
     ("trace-empty", "trace", "", ["summary"], ("{path}", "no column row", "time_s")),
     ("trace-header-only", "trace", TRACE[: TRACE.index("0.000000,")], ["plot"], ("{path}", "no data rows")),
     # -- the drive: its EDS and its answers ------------------------------------------------------------
-    ("eds-missing-0x6077", "eds", eds_without("6077"), BUS, ("{name}", "axis x", "0x6077", "missing")),
+    ("eds-missing-0x6071", "eds", eds_without("6071"), BUS, ("{name}", "axis x", "0x6071", "torque setpoint")),
     ("eds-missing-file", "eds", None, BUS, ("{name}", "axis x", "cannot be read")),
     ("eds-not-an-eds", "eds", "this is not an EDS\n", BUS, ("{name}", "axis x", "cannot be read")),
     # the drive on the bus is not the one the EDS describes (0x1018 vendor)
@@ -250,10 +250,11 @@ CASES = [
     # the drive answers an SDO write with an abort (injected into the emulated drive)
     ("sdo-abort-injected", "args", None, [*BUS, "--fault", "sdo-abort:index=0x6060"],
      ("axis x", "node 1", "SDO 0x6060 aborted")),
-    # the master's EDS says 0x6060 is 16 bits; the drive (8 bits) aborts the write of the mode of operation
+    # the drive (impersonating this EDS) takes modes up to 8 in 0x6060 although 0x6502 says cst: it aborts the
+    # write of mode 10 while the master configures it
     ("sdo-abort-while-configuring", "eds", edit(EDS, "[6060]\nParameterName=Modes of operation\nObjectType=0x7\n"
                                                 "DataType=0x0002", "[6060]\nParameterName=Modes of operation\n"
-                                                "ObjectType=0x7\nDataType=0x0006"), BUS,
+                                                "ObjectType=0x7\nDataType=0x0002\nHighLimit=8"), BUS,
      ("node 1", "0x6060", "aborted")),
     # -- command-line values ----------------------------------------------------------------------------
     ("fault-spec-zero-cycles", "args", None, [*BUS, "--fault", "tpdo-lost:cycles=0@1"], ("--fault", "cycles")),

@@ -13,6 +13,7 @@ from drivectl.controllers.runtime.servo import run
 from drivectl.driver import cia402
 from drivectl.driver.axis import AxisError, FaultKind
 from drivectl.driver.canopen_axis import CanopenAxis, Identity, SyncClock
+from drivectl.driver.capabilities import assess
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_COB_ID, NmtCommand, NmtState
 from drivectl.driver.cia402 import Command, PowerState
 from drivectl.driver.network import Lockstep, LockstepNetwork, open_bus, unique_virtual_channel
@@ -65,20 +66,20 @@ def bench():
 
 def test_eds_reads_and_has_every_cst_object():
     od = canopen.import_od(str(EMULATED_DRIVE_EDS), 1)
-    assert [f"0x{i:04X}" for i in cia402.REQUIRED_OBJECTS if i not in od] == []
+    assert assess(od, "x").missing == ()  # every optional object drivectl uses (driver/capabilities.py)
     assert od[cia402.SUPPORTED_DRIVE_MODES].default & cia402.supported_mode_bit(cia402.Mode.CYCLIC_SYNC_TORQUE)
     assert od[cia402.DEVICE_TYPE].default == cia402.DEVICE_TYPE_SERVO
 
 
 def test_eds_missing_a_required_object_is_refused(bench, tmp_path):
     text = EMULATED_DRIVE_EDS.read_text()
-    start = text.index("[6077]")
+    start = text.index("[6071]")
     end = text.index("[", start + 1)
     broken = tmp_path / "broken.eds"
     broken.write_text(text[:start] + text[end:])
-    with pytest.raises(AxisError, match=r"broken.eds: missing required object\(s\) 0x6077"):
+    with pytest.raises(AxisError, match=r"broken.eds: drive has no torque setpoint 0x6071: drivectl closes the loop"):
         CanopenAxis(bench.master, 1, name="x", dt=DT, effort_unit="N", eds=broken, encoder=Encoder(),
-                    effort_scale=EffortScale(100.0))
+                    effort_scale=EffortScale(100.0), clock=bench.clock)
 
 
 def test_boot_configures_cst_and_the_pdo_mapping_reads_back(bench):

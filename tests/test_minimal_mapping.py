@@ -81,8 +81,8 @@ def bus():
 
 def test_the_drive_accepts_the_minimal_remap(bus):
     ax = bus.axis
-    assert ax.read_back_mapping() == {"rpdo1": [0x60710010], "rpdo2": [0x60400010], "tpdo1": [0x60410010, 0x60640020],
-                                      "tpdo2": []}
+    assert ax.read_back_mapping() == {"rpdo1": [0x60710010], "rpdo2": [0x60400010], "tpdo1": [0x60410010, 0x60640020]}
+    assert ax.node.sdo[cia402.TPDO_COMM + 1][1].raw & 0x80000000  # TPDO2 unused: disabled
     assert ax.node.sdo[cia402.RPDO_COMM + 1][2].raw == 255  # RPDO2 event-driven
     assert ax.node.sdo[cia402.RPDO_COMM][2].raw == 1 and ax.node.sdo[cia402.RPDO_COMM][5].raw == 2  # deadline
     assert np.isnan(ax.torque_actual)

@@ -216,12 +216,16 @@ def test_capture_around_an_injected_fault_and_the_fault_ring_on_disk(tmp_path):
         assert exc.value.fault.kind == "drive fault"
         assert exc.value.fault.safe_state["x"] in ("Fault", "Switch On Disabled")
         assert x.state == "off" and x.fault is not None
-        tr = cap.wait(0)
-        assert len(tr) == 201 and tr.time[-1] == 0.0
-        assert tr.ref[-1] > 0 and "drive fault" in tr.meta["capture_detail"]
+        tr = cap.wait(1)  # the post-trigger samples (0.5 s by default) follow the fault: the stop, and after
+        # 0.2 s before, 0.5 s after; the detecting cycle has no sample of x (its drive was in Fault)
+        assert len(tr) == 700 and tr.time[0] == pytest.approx(-0.2) and tr.time[200] == 0.0
+        assert tr.time[-1] == pytest.approx(0.5)
+        assert tr.ref[200] > 0 and "drive fault" in tr.meta["capture_detail"]
+        assert tr.meta["capture_post_samples"] == "500"
+        assert abs(tr.pos[-1] - tr.pos[-100]) < 1e-6  # it shows the axis brought to rest
         files = m.loop.flush()
         assert len(files) == 1 and files[0].name.startswith("x-fault-")  # the armed capture, on disk
-        assert len(Trace.read(files[0])) == 201
+        assert len(Trace.read(files[0])) == 700
         with pytest.raises(AxisError, match="fault_reset first"):
             x.enable()
         x.fault_reset()

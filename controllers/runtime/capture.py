@@ -40,8 +40,8 @@ class Trigger:
     """What starts the post-trigger part of a capture.
 
     ``now``: at once; ``move``: the next move's first cycle on this axis (move, jog, home, run);
-    ``fault``: a fault on any axis (the window ends at the detecting cycle: the stop's own cycles are
-    in the fault's metadata, safe_after_cycles); ``level``: ``channel`` crossing ``level`` in
+    ``fault``: a fault on any axis (time 0 is the last sample before the detection; the post-trigger
+    samples are the stop's own cycles and what followed); ``level``: ``channel`` crossing ``level`` in
     ``direction`` (rising, falling, either)."""
 
     kind: str = "now"
@@ -127,12 +127,11 @@ class Capture:
         self.channels = channels
         self.trigger = trigger
         self.pre = pre
-        self.post = 0 if trigger.kind == "fault" else post
+        self.post = post
         self.dt = dt
         self.meta = meta
         self.state = "armed"  # armed -> triggered -> done (or cancelled)
         self.trigger_cycle: int | None = None
-        self._remaining = self.post
         self._prev: float | None = None
         self._done = threading.Event()
         self._data: np.ndarray | None = None
@@ -171,18 +170,23 @@ class Capture:
             self.trigger_cycle = cycle
         elif self.state != "triggered":
             return False
-        if self._remaining > 0:
-            self._remaining -= 1
+        if cycle < self.trigger_cycle + self.post:  # by cycle: after a fault the stop's cycles count too
             return False
         self.complete(ring, cycle)
         return True
+
+    def fire(self, cycle: int, detail: str) -> None:
+        """Triggered from outside (a fault) at ``cycle``: the post-trigger samples follow in the cycles to come."""
+        self.state, self.trigger_cycle, self.detail = "triggered", cycle, detail
 
     def complete(self, ring: Ring, cycle: int, detail: str = "") -> None:
         """Copy the window out of the ring (pre + 1 + post samples, ending at ``cycle``)."""
         if self.trigger_cycle is None:
             self.trigger_cycle = cycle
-        self._data, self._cycles = ring.window(self.pre + 1 + self.post)
-        self.detail = detail
+        data, cycles = ring.window(self.pre + 1 + self.post)
+        keep = cycles >= self.trigger_cycle - self.pre  # by cycle: a fault's detecting cycle may have no sample
+        self._data, self._cycles = data[:, keep], cycles[keep]
+        self.detail = detail or self.detail
         self.state = "done"
         self._done.set()
 

@@ -10,14 +10,11 @@ being run; an axis with nothing to do holds its position under its controller.
 
 Two clocks, chosen when the loop is made:
 
-* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (paced as ``trace --paced``:
-  :class:`~drivectl.controllers.runtime.servo.Pacer`), so that nothing a user or a program does delays a
-  cycle. Missed deadlines and the worst lateness are counted all the time (``status()``). A cycle that
-  starts later than ``stall_s`` after the previous one is a stall: a fault (quick stop); a watchdog
-  thread sends the quick stop itself when the loop thread does not come back at all, and the drive's
-  own watchdogs (RPDO deadline 0x1400:05, master heartbeat 0x1016) stop it when the process dies. The
-  in-process emulated drives run on this loop's clock meanwhile (as across processes), so a loop later
-  than the RPDO deadline is caught by the drive as a real one would catch it.
+* ``"wall"``: its own thread, one cycle per ``dt`` on the monotonic clock (pacing.Pacer). A late
+  wake-up is a missed cycle: the loop resynchronises to the next slot; only a gap past an enabled
+  axis's deadline is a fault (docs/timing.md); a watchdog thread quick-stops the axes when the loop
+  thread does not come back at all, and the drives' own watchdogs (0x1400:05, 0x1016) when the process
+  dies. In-process, the emulated drives run on this loop's clock (as across processes).
 * ``"lockstep"``: no thread; time is the cycle count and advances only when the caller runs cycles
   (:meth:`ServoLoop.step`, :meth:`ServoLoop.run_until`, a handle's ``wait``). Deterministic: the same
   commands give the same trace bit for bit (tests, CI on the emulated drives).
@@ -44,7 +41,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from enum import Enum
 from pathlib import Path
 from typing import Any
@@ -68,6 +65,7 @@ from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
 from drivectl.controllers.runtime.safe_stop import quietly, stop_channels
 from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
+from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 
@@ -117,7 +115,8 @@ class ServoLoop:
         motion: dict[str, MotionLimits] | None = None,
         *,
         clock: str = "lockstep",
-        stall_s: float = 0.05,
+        stall_s: float | None = 0.05,
+        deadlines: Mapping[str, float] | None = None,
         ring_s: float = 5.0,
         fault_dir: str | Path | None = None,
         gc_control: bool = True,
@@ -126,17 +125,26 @@ class ServoLoop:
         realtime: bool = False,
         io_lock: threading.RLock | None = None,
         now: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] | None = None,
         meta: dict[str, dict[str, str]] | None = None,
     ):
         if clock not in CLOCKS:
             raise ValueError(f"loop: clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
         if not channels:
             raise ValueError("loop: no axes")
-        if not (math.isfinite(stall_s) and stall_s > 0):
+        if stall_s is not None and not (math.isfinite(stall_s) and stall_s > 0):
             raise ValueError(f"loop: stall_s: must be > 0, got {stall_s!r}")
         self.dt = channels[0].axis.dt
         self.clock = clock
+        #: each axis's deadline (s; controllers/runtime/timing.py): the longest its drive holds a setpoint
+        self.deadlines = {ch.axis.name: (deadlines or {}).get(ch.axis.name, 2 * self.dt) for ch in channels}
+        #: a gap between two cycles longer than this is a stall (a fault); None: each enabled axis's deadline
         self.stall_s = stall_s
+        self._first_bound = stall_s if stall_s is not None else min(self.bound_of(n) for n in self.deadlines)
+        #: the watchdog thread's bound: a loop thread silent for twice this is quick-stopped from outside
+        self._watch_s = max(self._first_bound if math.isfinite(self._first_bound) else 0.05, 0.05)
+        self.latency = LatencyRecord()  # every wall-clock cycle's lateness since the start (status)
+        self.recent = RecentLatency()  # the last 30-60 s of it (enable's check)
         self.fault_dir = Path(fault_dir) if fault_dir is not None else None
         self.gc_control = gc_control
         #: shorten the interpreter's switch interval while the wall-clock loop runs (controllers/runtime/host.py)
@@ -155,6 +163,8 @@ class ServoLoop:
         self.io_lock = io_lock or threading.RLock()
         self._inbox: collections.deque[Callable[[], None]] = collections.deque()
         self._now = now
+        self._elapsed = 1  # cycles since the previous cycle (more after a late wake-up)
+        self._sleep = sleep  # the pacer's (tests inject a clock whose sleeps pass simulated time)
         self.cycle = 0  # loop cycles run
         self.missed = 0
         self.worst_late = 0.0
@@ -300,7 +310,7 @@ class ServoLoop:
             except Exception as exc:  # noqa: BLE001 - a bug in a controller or a hook: stop, never run on blind
                 self._fault(Fault("loop error", self._rts[0].name, k, f"the servo loop raised {type(exc).__name__}: "
                                   f"{exc}"), StopReason.FAULT)
-            self.cycle = k + 1
+            self.cycle += 1  # (a stop's own cycles were counted as they ran)
 
     def _axis_named(self, exc: Exception) -> str:
         text = str(exc)
@@ -311,6 +321,9 @@ class ServoLoop:
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
+        if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
+            ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
+            ch.controller.skipped(self._elapsed - 1)
         if rt.offset:
             fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
         if rt.jog_until and k >= rt.jog_until:
@@ -432,6 +445,8 @@ class ServoLoop:
         done = [cap for cap in rt.captures if cap.on_cycle(rt.ring, k, started)]
         for cap in done:
             rt.captures.remove(cap)
+            if cap.trigger.kind == "fault":
+                self._queue_fault_capture(cap)
 
     # -- faults and stops -----------------------------------------------------------------------------------
     def _fault(self, fault: Fault, stop: StopReason) -> None:
@@ -448,11 +463,14 @@ class ServoLoop:
                                  self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
                 rt.captures.extend(armed)
             for cap in armed:
+                if cap.post:  # the stop and what follows it come as the post-trigger samples
+                    cap.fire(last, why)
+                    continue
                 cap.complete(rt.ring, last, why)
                 rt.captures.remove(cap)
                 self._queue_fault_capture(cap)
         try:
-            stop_channels(self._channels, fault)
+            stop_channels(self._channels, fault, on_cycle=self._stop_cycle)
         except Exception as exc:  # noqa: BLE001 - the stop must not kill the loop; say so in the fault
             fault.detail += f"; the stop itself failed: {exc}"
         self.faults.append(fault)
@@ -466,6 +484,22 @@ class ServoLoop:
             if rt.handle is not None:
                 h, rt.handle = rt.handle, None
                 h.finish("fault", rt, fault.detail, fault)
+
+    def _stop_cycle(self, samples: Mapping[str, Feedback | None]) -> None:
+        """One cycle of a stop (controllers/runtime/safe_stop.py): every axis's sample into its ring, so a
+        fault capture's post-trigger samples show the stop itself."""
+        self.cycle += 1
+        k = self.cycle
+        for rt in self._rts:
+            fb = samples.get(rt.name)
+            if fb is None:
+                continue
+            ax = rt.ch.axis
+            pos = fb.position - rt.offset
+            rt.ring.push(k, rt.reference, pos, 0.0, fb.velocity, getattr(ax, "torque_actual", math.nan),
+                         getattr(ax, "statusword", 0))
+            if rt.captures:
+                self._captures(rt, k)
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
@@ -502,23 +536,27 @@ class ServoLoop:
         try:
             self._setup_thread()
             now = self._now
-            pacer = Pacer(self.dt, now=now)
+            pacer = Pacer(self.dt, now=now, sleep=self._sleep)
             # in-process, the emulated drives run on this clock too, as across processes: a loop later than
             # the drive's RPDO deadline is caught by the drive (controllers/runtime/pacing.pace_axes)
             pace_axes(self._channels, pacer.now)
             paced = True
             k = 0
+            latency, recent = self.latency, self.recent
             while not self._closing:
-                pacer.wait(k)
+                late = pacer.wait(k)
+                latency.add(late)
+                recent.add(late)
                 t = now()
                 last = self._last_cycle_t
-                if last is not None and t - last > self.stall_s:
+                if last is not None and t - last > self._first_bound:
                     self._on_stall(t - last)
                 behind = int((t - pacer.t0) / self.dt) - k
-                if behind > 1:  # far behind: skip the lost slots instead of bursting cycles to catch up
+                if behind > 0:  # a slot or more lost: resynchronise to the next one, no burst of stale cycles
                     pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
                     self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
+                self._elapsed = behind + 1
                 self._cycle_all()
                 self._last_cycle_t = now()
                 k += 1
@@ -570,26 +608,36 @@ class ServoLoop:
         if took > self.gc_worst:
             self.gc_worst = took
 
+    def bound_of(self, rt: AxisRuntime | str) -> float:
+        """The longest gap between two cycles that an axis rides out (s; inf: not watched)."""
+        if self.stall_s is not None:
+            return self.stall_s
+        d = self.deadlines[rt if isinstance(rt, str) else rt.name]
+        return d if d > 0 else math.inf
+
     def _on_stall(self, gap: float) -> None:
-        self.stalls += 1
+        """A gap past an enabled axis's deadline is a fault (drivectl's own clock; the drive's catches the
+        same from its side); a shorter one is a missed cycle, counted, not a fault."""
         self._stalled = False
-        servo = next((rt for rt in self._rts if rt.state is AxisState.SERVO), None)
-        if servo is None:
+        over = [rt for rt in self._rts if rt.state is AxisState.SERVO and gap > self.bound_of(rt)]
+        if not over:
             return
+        self.stalls += 1
+        servo = min(over, key=self.bound_of)
         fault = Fault(FaultKind.LOOP_STALLED.value, servo.name, servo.servo_k,
                       f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
-                      f"(bound {self.stall_s * 1e3:g} ms)")
+                      f"(bound {self.bound_of(servo) * 1e3:g} ms)")
         with self.io_lock:
             self._fault(fault, StopReason.FAULT)
 
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
-        while not self._closed.wait(self.stall_s / 2):
+        while not self._closed.wait(self._watch_s / 2):
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue
-            if self._now() - last > 2 * self.stall_s:
+            if self._now() - last > 2 * self._watch_s:
                 self._stalled = True
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
@@ -608,7 +656,9 @@ class ServoLoop:
             "skipped_cycles": self.skipped,
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
-            "stall_bound_ms": self.stall_s * 1e3,
+            "stall_bound_ms": self._first_bound * 1e3,
+            "latency_ms": self.latency.percentiles_ms(),  # the wall clock's lateness of every cycle
+            "deadline_ms": {name: d * 1e3 for name, d in self.deadlines.items()},
             "gc_collections": self.gc_runs,
             "gc_worst_ms": self.gc_worst * 1e3,
             "granted": dict(self.granted),

@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import ruckig
 
 from drivectl.profiles.base import Reference
@@ -170,3 +171,49 @@ class Trajectory:
         # ruckig refused the input (cannot happen with validated limits): hold where the reference is
         self.hold(self.position)
         return Reference(self.position)
+
+
+#: the longest move previewed, s (a jog runs toward the soft limit; its dead man stops it long before)
+PREVIEW_S = 5.0
+
+
+class PlannedMove:
+    """A move from rest to rest, planned whole by ruckig's offline calculation, as a profile (``sample``
+    at any times, holding its ends outside [0, duration]). Bit for bit what the loop's :class:`Trajectory`
+    outputs cycle by cycle for the same input (tests/test_standstill.py), so a controller's preview of it
+    (controllers/base.py ``preview``) is computed outside the cycle when the command is given, as a run's
+    is, and the move runs on the table instead of an extrapolation."""
+
+    def __init__(self, start: float, target: float, limits: MotionLimits, vmax: float | None = None):
+        inp = ruckig.InputParameter(1)
+        inp.current_position = [start]
+        inp.target_position = [target]
+        inp.max_velocity = [min(vmax, limits.max_velocity) if vmax else limits.max_velocity]
+        inp.max_acceleration = [limits.max_acceleration]
+        inp.max_jerk = [limits.max_jerk]
+        self.start, self.target = start, target
+        self._traj = ruckig.Trajectory(1)
+        result = ruckig.Ruckig(1).calculate(inp, self._traj)
+        prof = self._traj.profiles[0][0]
+        if result not in (ruckig.Result.Working, ruckig.Result.Finished) or prof.brake.duration or prof.accel.duration:
+            raise ValueError("ruckig: no single-phase profile for this move")
+        self.duration = float(self._traj.duration)
+        # the seven phases of constant jerk: their start times and the state at each start, integrated as
+        # ruckig integrates them (p0 + t (v0 + t (a0/2 + t j/6))), so a sample is one numpy expression
+        self._edges = np.concatenate([[0.0], np.cumsum(prof.t)])
+        self._p, self._v, self._a = np.asarray(prof.p), np.asarray(prof.v), np.asarray(prof.a)
+        self._j = np.asarray(prof.j)
+
+    def sample(self, t: Any) -> tuple[Any, Any, Any, Any]:
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        i = np.clip(np.searchsorted(self._edges, t, side="right") - 1, 0, 6)
+        tau = t - self._edges[i]
+        j = self._j[i]
+        a0, v0 = self._a[i], self._v[i]
+        p = self._p[i] + tau * (v0 + tau * (a0 / 2 + tau * j / 6))
+        v = v0 + tau * (a0 + tau * j / 2)
+        a = a0 + tau * j
+        rest = t >= self.duration
+        p = np.where(rest, self.target, p)
+        zero = np.where(rest, 0.0, 1.0)
+        return p, v * zero, a * zero, j * zero * (t > 0.0)

@@ -31,7 +31,8 @@ class Pacer:
         self.missed = 0
         self.worst_late = 0.0
 
-    def wait(self, k: int) -> None:
+    def wait(self, k: int) -> float:
+        """Hold until cycle ``k``'s time; returns how late it starts (s)."""
         deadline = self.t0 + k * self.dt
         now = self._now()
         if deadline - now > self.SPIN_S:
@@ -43,7 +44,7 @@ class Pacer:
             self.worst_late = late
         if late > 0.5 * self.dt:
             self.missed += 1
-
+        return late
 
     def now(self) -> float:
         """The pacer's clock (the wall clock the in-process drives run on while the run is paced)."""

@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 from drivectl.controllers.runtime.cycle import SAFE_STATES, Channel, Fault
-from drivectl.driver.axis import Axis, AxisError, FaultKind
+from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 
 #: cycles a drive has to report a safe state after each step before the next one (a CiA 402 drive in
@@ -67,10 +67,11 @@ def confirmed(axis: Axis) -> bool:
     return axis.power in SAFE_STATES and getattr(axis, "state_fresh", True)
 
 
-def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
-              fault_axis: str | None = None) -> dict[str, AxisStop]:
+def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: str | None = None,
+              on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> dict[str, AxisStop]:
     """Quick stop every axis now and verify; escalate per axis until each confirms or nothing is left.
-    Then disable the confirmed ones (a drive in Fault stays there: its reset is the operator's)."""
+    Then disable the confirmed ones (a drive in Fault stays there: its reset is the operator's).
+    ``on_cycle``: given every axis's sample (None: none came) after each of the stop's cycles."""
     stops = {ax.name: AxisStop(ax.name) for ax in axes}
     for ax in axes:
         _attempt(stops[ax.name], "quick stop by RPDO", ax.quick_stop)
@@ -105,7 +106,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
             if all(done(ax) for ax in axes):
                 break
             cycle += 1
-            if not _stop_cycle(axes):
+            if not _stop_cycle(axes, on_cycle):
                 break  # nothing answers at all: the next step may still get through (or fail and say so)
             mark(cycle)
         pending = [ax for ax in axes if not done(ax)]
@@ -121,7 +122,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None,
     for _ in range(SETTLE_CYCLES):
         if all(ax.power not in _STILL_CHANGING for ax in axes if done(ax)):
             break
-        if not _stop_cycle(axes):
+        if not _stop_cycle(axes, on_cycle):
             break
     return stops
 
@@ -164,13 +165,15 @@ def _attempt(st: AxisStop, what: str, fn: Callable[[], object]) -> bool:
     return True
 
 
-def _stop_cycle(axes: Sequence[Axis]) -> bool:
+def _stop_cycle(axes: Sequence[Axis], on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> bool:
     """One zero-effort cycle of every axis during a stop, the statusword asked by SDO where no TPDO
     brought it; False when no axis could be cycled or asked."""
     alive = False
+    samples: dict[str, Feedback | None] = {}
     for axis in axes:
+        samples[axis.name] = None
         try:
-            axis.read()
+            samples[axis.name] = axis.read()
             alive = True
         except AxisError:
             pass  # no sample (TPDOs gone): asked by SDO below
@@ -180,6 +183,8 @@ def _stop_cycle(axes: Sequence[Axis]) -> bool:
             if quietly(axis.refresh_state) is not None:
                 alive = True
         quietly(axis.write, 0.0)
+    if on_cycle is not None:
+        quietly(on_cycle, samples)
     return alive
 
 
@@ -191,12 +196,13 @@ def quietly(fn: Callable[..., object], *args: object) -> object:
         return None
 
 
-def stop_channels(channels: Sequence[Channel], fault: Fault | None = None) -> None:
+def stop_channels(channels: Sequence[Channel], fault: Fault | None = None,
+                  on_cycle: Callable[[dict[str, Feedback | None]], None] | None = None) -> None:
     """Quick stop now (the command goes out in this very cycle), verified by what each drive reports
     after it and escalated where it does not confirm (:func:`stop_axes`); the cycles to a confirmed safe
     state and the state (or "may still be powered" and what was tried) go into ``fault``."""
     axes = [ch.axis for ch in channels]
-    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None)
+    stops = stop_axes(axes, fault.kind if fault else None, fault.axis if fault else None, on_cycle)
     if fault is not None:
         for ax in axes:
             st = stops[ax.name]

@@ -405,8 +405,10 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     # hundreds of ms): wait ENABLE_WAIT_S, not just the few cycles of the state machine itself
     cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
-        late = [f"{ch.axis.name} ({ch.axis.power.value})" for ch in channels
-                if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
+        late = [f"{ch.axis.name} ({ch.axis.power.value}"
+                + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
+                for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {cycles} cycles")
 
 

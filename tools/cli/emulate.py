@@ -59,6 +59,8 @@ def add_emulate_parser(sub: Any) -> None:
                    "clock (python-can Logger, format by suffix: .asc, .blf, .log, .csv, .trc)")
     e.add_argument("--fault", action="append", default=[], metavar="[AXIS/]KIND[:k=v,...]@TIME",
                    help="inject a fault TIME s after the drive is enabled (repeatable; see docs/faults.md)")
+    e.add_argument("--eds", metavar="FILE", help="the drive impersonates this EDS (its objects, limits, PDO rules, "
+                   "modes, identity; default: each axis's eds key, else drivectl's own emulated drive)")
     e.add_argument("--boot-delay-ms", type=float, default=None, metavar="MS",
                    help="boot-up message this long after power-on or an NMT reset (default 50 ms)")
     e.add_argument("--sync-loss-ms", type=float, default=None, metavar="MS",
@@ -100,6 +102,17 @@ def _check_args(args: argparse.Namespace) -> None:
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise EmulateArgError(f"--axis {args.axis}: axis {dup[0]} given twice")
+    if getattr(args, "eds", None) is not None:
+        eds = Path(args.eds)
+        if not eds.is_file():
+            raise EmulateArgError(f"--eds {eds}: no such file")
+        try:
+            import canopen
+
+            canopen.import_od(str(eds), 1)
+        except Exception as exc:  # canopen raises many types for a bad file
+            reason = (str(exc).strip().splitlines() or [type(exc).__name__])[0].rstrip(":")
+            raise EmulateArgError(f"--eds {eds}: cannot be read: {reason}") from None
     if args.bus_log:
         path = Path(args.bus_log)
         if path.suffix.lower() not in _LOG_SUFFIXES:
@@ -154,7 +167,7 @@ def _open_emulator_bus(args: argparse.Namespace) -> tuple[can.BusABC, str, str]:
 def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
     from drivectl.driver import cia402
     from drivectl.driver.network import BusLog, log_sent_frames
-    from drivectl.machine.build import axis_profile, plant_specs
+    from drivectl.machine.build import axis_profile, plant_specs, readable_eds
     from drivectl.machine.config import load_config
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
@@ -195,7 +208,8 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         # each axis stands where its configured profile starts, as `drivectl trace` expects
         start = axis_profile(cfg, name).start_position
         drive = EmulatedDrive(net, ac.node_id, specs[name].build(cfg.cycle_s), rated_effort=ac.rated_effort,
-                              resolution=ac.encoder_m_per_count, force_noise=args.noise, seed=args.seed + i,
+                              eds=args.eds or readable_eds(name, ac.eds), resolution=ac.encoder_m_per_count,
+                              force_noise=args.noise, seed=args.seed + i,
                               initial_position=start, faults=injectors[name] if faults else None,
                               io=ac.emulator, **clock)
         drives.append(drive)

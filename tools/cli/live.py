@@ -76,6 +76,10 @@ class StatusLine:
         for name, row in zip(self.m.loop.axes, sample(self.m, self.channels), strict=True):
             vals = " ".join(f"{c} {v:.4g} {LIVE_CHANNELS[c][2]}" for c, v in zip(self.channels, row, strict=True))
             parts.append(f"{name}: {vals}")
+        loop = self.m.loop
+        if loop.clock == "wall" and loop.latency.n:
+            lat = loop.latency
+            parts.append(f"late p99.9 {lat.percentile(99.9) * 1e3:.2f} max {lat.max * 1e3:.2f} ms")
         self.out.write("\r\x1b[2K" + "  |  ".join(parts))
         self.out.flush()
         self._shown = True

@@ -96,6 +96,18 @@ def build_parser() -> argparse.ArgumentParser:
     from drivectl.tools.cli.shell import add_shell_parser
 
     add_shell_parser(sub)
+    from drivectl.tools.ui.command import add_ui_parser
+
+    add_ui_parser(sub)
+    from drivectl.tools.cli.doctor import add_doctor_parser
+
+    add_doctor_parser(sub)
+    from drivectl.tools.cli.drive import add_drive_parser
+
+    add_drive_parser(sub)
+    from drivectl.tools.cli.doctor_drive import add_doctor_parser as add_drive_doctor
+
+    add_drive_doctor(sub)  # the drive section as `doctor`, unless a fuller doctor registered that name first
 
     pl = sub.add_parser("plot", help="plot any trace file (ours or a CSV with the four columns)")
     pl.add_argument("traces", nargs="+", metavar="TRACE.csv")
@@ -109,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: commands that talk to drives: Ctrl-C / SIGTERM are read at cycle boundaries there, never raised into
 #: the bus I/O (drivectl.controllers.runtime.interrupt); elsewhere (tune's search, explain, plot) they end at once
-TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate")
+TALKS_TO_DRIVES = ("trace", "bode", "identify", "enable", "disable", "fault-reset", "status", "scan", "emulate",
+                   "drive", "doctor")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -183,8 +196,24 @@ def _dispatch(args: argparse.Namespace) -> int:
             from drivectl.tools.cli.shell import cmd_shell
 
             return cmd_shell(args)
+        if args.command == "ui":
+            from drivectl.tools.ui.command import cmd_ui
+
+            return cmd_ui(args)
         if args.command == "summary":
             return cmd_summary(args)
+        if getattr(args, "doctor_drive", False):
+            from drivectl.tools.cli.doctor_drive import cmd_doctor_drive
+
+            return cmd_doctor_drive(args)
+        if args.command == "drive":
+            from drivectl.tools.cli.drive import cmd_drive
+
+            return cmd_drive(args)
+        if args.command == "doctor":
+            from drivectl.tools.cli.doctor import cmd_doctor
+
+            return cmd_doctor(args)
     except bad_input as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -309,6 +338,9 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
         def started(cycles: int) -> None:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text}"
                   f"{load_text} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
+            for name in names:  # what the boot chose for each drive and what it does for what the drive lacks
+                for note in getattr(machine.axes[name], "boot_notes", ()):
+                    print(f"{name}: {note}", file=sys.stderr)
 
         from drivectl.controllers.runtime.servo import plan_run
         from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand

@@ -16,6 +16,7 @@ import cmd
 import shlex
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -205,13 +206,21 @@ class Shell(cmd.Cmd):
         self.say(f"loop: {st['clock']}, {st['cycles']} cycles, missed deadlines {st['missed_deadlines']} "
                  f"({st['missed_fraction'] * 100:.2f} %), worst late {st['worst_late_ms']:.2f} ms, "
                  f"stalls {st['stalls']}")
+        if self.m.loop.clock == "wall":
+            lat, dl = st["latency_ms"], st["deadline_ms"]
+            self.say("lateness: " + ", ".join(f"{q} {v:.3f} ms" for q, v in lat.items()) + "; deadlines "
+                     + ", ".join(f"{n} {v:g} ms" for n, v in dl.items()) + " (docs/timing.md)")
         return False
 
     def do_enable(self, arg: str) -> bool:
         pos, opts, _ = self._args(arg, 1, "enable AXIS|all")
         self._no_more(opts, "enable")
         for ax in self._axes(pos[0]):
-            ax.enable()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # said here, on its own line
+                ax.enable()
+            if ax.timing_warning:
+                self.say(f"warning: {ax.timing_warning}")
             self.say(f"{ax.name}: {ax.power.value}, holding {format_position(ax.position)}")
         return False
 

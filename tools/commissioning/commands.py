@@ -79,6 +79,9 @@ def add_commission_parsers(sub: Any) -> None:
     ci = csub.add_parser("init", help="write a commented starter configuration")
     ci.add_argument("file", nargs="?", default="drivectl.toml")
     ci.add_argument("--force", action="store_true", help="overwrite an existing file")
+    ci.add_argument("--eds", metavar="FILE", help="a configuration whose axis is this drive (emulated by default: the "
+                    "emulated drive impersonates the EDS); every choice commented")
+    ci.add_argument("--axis", default="x", help="--eds: the axis's name (default x)")
 
     s = sub.add_parser("scan", help="list the CANopen nodes on the bus (identity, device name, NMT state)")
     s.add_argument("--json", action="store_true")
@@ -125,7 +128,18 @@ def cmd_config(args: argparse.Namespace) -> int:
         if path.exists() and not args.force:
             print(f"drivectl: {path}: exists (use --force to overwrite)", file=sys.stderr)
             return 2
-        atomic_write_text(path, DEFAULT_CONFIG_TOML)
+        text = DEFAULT_CONFIG_TOML
+        if args.eds is not None:
+            from drivectl.machine.eds_config import starter_config
+            from drivectl.tracefile.stream import safe_name
+
+            if not safe_name(args.axis):
+                print(f"drivectl: --axis {args.axis!r}: an axis name names its trace files: letters, digits, _ + - "
+                      "only", file=sys.stderr)
+                return 2
+
+            text = starter_config(args.eds, args.axis)  # a drive without an essential: one line, nothing written
+        atomic_write_text(path, text)
         print(f"wrote {path} (use it with: drivectl --config {path} ...)")
         return 0
     from drivectl.machine.config_io import show_text
@@ -198,6 +212,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     names = [args.axis] if args.axis else list(cfg.axes)
     for n in names:
         cfg.axis(n)
+    from drivectl.machine.build import axis_deadlines, plant_specs
+
+    deadlines = axis_deadlines(cfg, names, plant_specs(cfg, names))
     out = {}
     with open_bus_session(cfg) as session:
         net = session.network
@@ -213,6 +230,8 @@ def cmd_status(args: argparse.Namespace) -> int:
                 code = node.sdo[cia402.ERROR_CODE].raw
                 counts = node.sdo[cia402.POSITION_ACTUAL].raw
                 max_torque = node.sdo[cia402.MAX_TORQUE].raw
+                # the RPDO deadline the drive holds now (0x1400:05, where it has one: docs/timing.md)
+                rpdo_deadline = node.sdo[cia402.RPDO_COMM][5].raw if 5 in node.sdo[cia402.RPDO_COMM] else None
             except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
                 print(f"drivectl: axis {name}: node {ac.node_id}: no answer to SDO ({exc})", file=sys.stderr)
                 return 1
@@ -237,6 +256,8 @@ def cmd_status(args: argparse.Namespace) -> int:
                 "max_effort": ac.limits.max_effort if math.isfinite(ac.limits.max_effort) else None,
                 "effort_unit": unit,
                 "last_emcy": emcy[-1].hex() if emcy else None,
+                "rpdo_deadline_ms": rpdo_deadline,
+                "deadline_ms": deadlines[name].ms,  # what connecting writes there
             }
     if args.json:
         print(json.dumps(out))
@@ -254,6 +275,9 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(f"  max torque   {s['max_torque']:g} {u} (0x6072 = {s['max_torque_permille']} per mille; "
               f"limits.max_effort {limit})")
         print(f"  last EMCY    {s['last_emcy'] or 'none'}")
+        d = deadlines[name]
+        now = "none" if s["rpdo_deadline_ms"] is None else f"{s['rpdo_deadline_ms']} ms"
+        print(f"  deadline     0x1400:05 = {now}; connecting writes {d.ms} ms ({d.source}: {d.formula})")
     return 0
 
 
@@ -278,8 +302,10 @@ def cmd_power(args: argparse.Namespace) -> int:
             ax.read()
             ax.write(0.0)
         if ax.power is not want:
+            why = f": {ax.enable_blocker()}" if want is PowerState.OPERATION_ENABLED and hasattr(ax, "enable_blocker") \
+                else ""
             print(f"drivectl: axis {args.axis}: still {ax.power.value} after {STATE_CHANGE_CYCLES} cycles "
-                  f"(wanted {want.value})", file=sys.stderr)
+                  f"(wanted {want.value}){why}", file=sys.stderr)
             return 1
         print(f"axis {args.axis}: {ax.power.value}")
     return 0

@@ -1,7 +1,7 @@
 """Identify a two-mass axis (paper 000 eq (1)) from its closed-loop frequency response.
 
 ``drivectl identify --axis z``: the axis holds its position under its controller while bode's multisine
-is added to the effort (tools/commissioning/bode.py: ``H = S_ry / S_ru``, unbiased in closed loop); the model's FRF
+is added to the effort (tools/commissioning/frf.py: ``H = S_ry / S_ru``, unbiased in closed loop); the model's FRF
 from effort to table position (ZOH, transport delay) is then fitted to the measured one over the
 coherent lines by nonlinear least squares (scipy's ``least_squares``).
 
@@ -119,7 +119,7 @@ def fit_two_mass(freqs: np.ndarray, frf: np.ndarray, coherence: np.ndarray, peri
     """Fit m1, m2, k, n, b2 of ``prior`` (a two-mass spec: the start, and b1 and the rest held) to the
     measured FRF on the lines with enough coherence. ``mode_hz`` / ``total_mass``, when known from the
     data (bode's peak, the low-frequency line), start the search there."""
-    from drivectl.tools.commissioning.bode import model_frf
+    from drivectl.tools.commissioning.frf import model_frf
 
     if prior.model != "two-mass":
         raise TwoMassError(f"identify: model {prior.name} is {prior.model}, not two-mass")

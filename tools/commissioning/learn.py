@@ -123,7 +123,7 @@ def loop_response(model: PlantSpec, make_controller: Any, dt: float, cycles: int
 def _hold_run(lin: PlantSpec, make_controller: Any, dt: float, n: int, position: float, pulse: float) -> np.ndarray:
     from drivectl.controllers.runtime.servo import run
     from drivectl.plant_emulator.sim_axis import SimAxis
-    from drivectl.tools.commissioning.bode import Hold
+    from drivectl.tools.commissioning.bode_excitation import Hold
 
     corr = np.zeros(n)
     corr[PULSE_AT] = pulse
@@ -138,7 +138,7 @@ def _hold_run(lin: PlantSpec, make_controller: Any, dt: float, n: int, position:
 
 
 def default_q_hz(model: PlantSpec, dt: float) -> float:
-    from drivectl.tools.commissioning.bode import model_modes
+    from drivectl.tools.commissioning.frf import model_modes
 
     modes = model_modes(linear_part(model))
     q = min([DEFAULT_Q_HZ] + [Q_MODE_FRACTION * f for f in modes])

@@ -1,0 +1,143 @@
+"""The timing model (docs/timing.md): deadlines from the axis's physics, the host's lateness record and
+verdict, a late cycle ridden out and a stall caught, on an injected clock (nothing depends on the load)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from helpers import SimWallClock
+
+from drivectl.controllers.runtime.timing import (
+    DEADLINE_CAP_S,
+    LatencyRecord,
+    axis_deadline,
+    judge,
+    physics_deadline,
+)
+from drivectl.driver import cia402
+
+
+def test_the_deadline_is_the_time_max_effort_takes_to_use_half_the_window():
+    # x of the embedded machine: 88.08 kg, 2000 N, 1 mm: sqrt(2 * 88.08 * 0.5 * 1e-3 / 2000) = 6.64 ms
+    assert physics_deadline(88.08, 2000.0, 1e-3) == pytest.approx(6.636e-3, rel=1e-3)
+    d = axis_deadline("x", 1e-3, mass=88.08, max_effort=2000.0, window=1e-3)
+    assert d.source == "physics" and d.ms == 6 and d.seconds == 0.006  # whole ms, never above the physics
+    heavy = axis_deadline("x", 1e-3, mass=5000.0, max_effort=100.0, window=5e-3)
+    assert heavy.seconds == DEADLINE_CAP_S and "capped at 20 ms" in heavy.formula
+    assert axis_deadline("x", 1e-3, mass=88.08, max_effort=math.inf, window=1e-3).seconds == 0.002  # two cycles
+    over = axis_deadline("x", 1e-3, mass=88.08, max_effort=2000.0, window=1e-3, override_ms=50)
+    assert over.source == "configured" and over.ms == 50 and over.physics_s == pytest.approx(6.636e-3, rel=1e-3)
+
+
+def test_the_machine_writes_each_axis_deadline_to_its_drive():
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
+
+    cfg = load_config(None)
+    with open_machine(cfg, ["x", "z"]) as m:
+        assert {n: d.ms for n, d in m.deadlines.items()} == {"x": 6, "z": 6}
+        for n in ("x", "z"):
+            assert m.drives[n]._rpdo_timeout_ms == 6  # what the drive was written (0x1400:05) and watches
+
+
+def test_latency_record_percentiles_and_verdicts():
+    r = LatencyRecord()
+    for _ in range(9990):
+        r.add(20e-6)
+    for _ in range(10):
+        r.add(3e-3)
+    p = r.percentiles_ms()
+    assert p["p50"] == pytest.approx(0.02, rel=0.03) and p["p99"] == pytest.approx(0.02, rel=0.03)
+    assert p["p99_99"] == pytest.approx(3.0, rel=0.03) and p["max"] == pytest.approx(3.0)
+    assert judge(0.006, 1e-3, p)[0] == "warn"  # 3 ms of a 5 ms margin
+    assert judge(0.020, 1e-3, p)[0] == "ok"
+    verdict, why = judge(0.003, 1e-3, p)
+    assert verdict == "refuse" and "p99.99 3.00 ms" in why and "2.00 ms late" in why
+    assert judge(0.0, 1e-3, p)[0] == "ok"  # no deadline written: nothing to judge
+
+
+def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
+    from drivectl.controllers.runtime.timing import RecentLatency
+
+    r = RecentLatency(window=1000)
+    r.add(0.05)  # a 50 ms hiccup at the start
+    for _ in range(1500):
+        r.add(20e-6)
+    assert r.record().max == pytest.approx(0.05) and r.record().n == 1501
+    for _ in range(1000):
+        r.add(20e-6)
+    rec = r.record()
+    assert rec.max == pytest.approx(20e-6) and 1000 <= rec.n <= 2000  # forgotten after one to two windows
+    assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
+
+
+def _sim_loop(tmp_path, stall):
+    """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
+    simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept)."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.cycle import Channel
+    from drivectl.controllers.runtime.loop import AxisState, ServoLoop
+    from drivectl.machine.build import open_machine
+    from drivectl.machine.config import load_config
+
+    cfg = load_config(None)
+    ac = cfg.axis("x")
+    m = open_machine(cfg, ["x"])
+    clock = SimWallClock(100.0)
+    seen = {}
+
+    def sleep(s: float) -> None:
+        extra, stall["s"] = stall["s"], 0.0
+        if extra:
+            seen["servo_k"] = loop.axes["x"].servo_k
+        clock.t += s + extra
+
+    ch = Channel(m.axes["x"], make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None,
+                 ac.limits)
+    loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={"x": m.deadlines["x"].seconds}, now=clock.now,
+                     sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False)
+    loop.start()
+    rt = loop.axes["x"]
+    rt.state = AxisState.ENABLING
+    loop.submit(ch.axis.enable)
+    assert loop.run_until(lambda: rt.state is AxisState.SERVO, 30.0)
+    return m, loop, seen
+
+
+def test_a_late_cycle_within_the_deadline_is_a_missed_cycle_not_a_fault(tmp_path):
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    try:
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 100, 30.0)
+        stall["s"] = 0.004  # 4 ms late: inside x's 6 ms deadline
+        assert loop.run_until(lambda: "servo_k" in seen and loop.slots > start + 300, 30.0)
+        st = loop.status()
+        assert st["faults"] == 0 and st["axes"]["x"]["state"] == "servo", loop.faults
+        assert st["skipped_cycles"] == st["missed_deadlines"] == 3  # 3.7 ms late: resynchronised, no burst
+        assert 3.5 <= st["latency_ms"]["max"] <= 4.0 and st["deadline_ms"] == {"x": 6.0}
+        assert m.drives["x"].drive.error_code == 0  # the drive held the setpoint and went on
+    finally:
+        loop.close()
+        m.close()
+
+
+def test_a_stall_past_the_deadline_is_caught_within_the_deadline_plus_two_cycles(tmp_path):
+    """The process stopped for 0.5 s (as SIGSTOP does): when it resumes, the axis faults at once, on
+    drivectl's own clock, and stops, the end state reported by the drive."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    try:
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 100, 30.0)
+        stall["s"] = 0.5
+        assert loop.run_until(lambda: loop.faults, 30.0)
+        f = loop.faults[0]
+        assert f.kind == "servo loop stalled" and "no cycle for 50" in f.detail and "bound 6 ms" in f.detail
+        assert f.cycle - seen["servo_k"] <= 2  # the first cycle after it resumed
+        assert f.safe_after["x"] is not None and f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault")
+        assert m.axes["x"].power is not cia402.PowerState.OPERATION_ENABLED
+    finally:
+        loop.close()
+        m.close()

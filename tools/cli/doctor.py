@@ -1,0 +1,193 @@
+"""``drivectl doctor``: a preflight of the host, the bus and the drives before anything is enabled.
+
+The host part runs the resident loop itself (controllers/runtime/loop.py) on the wall clock for
+``--seconds``: the same thread set-up (priority, affinity, GC and GIL measures), the cycle's real work on
+the configured bus (SYNC, TPDOs, RPDOs of every axis), no axis enabled. It reports the lateness
+percentiles of every cycle and what the OS granted, the kernel (PREEMPT_RT or not) and the bus load, and
+per axis the deadline it uses (controllers/runtime/timing.py, docs/timing.md) and whether the host meets it.
+
+The drives part says, per drive, the deadline written (:func:`drive_sections`) and what the master found
+and whether it enables (tools/cli/doctor_drive.py); ``enable`` refuses on the same verdict (session.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+VERDICTS = ("ok", "warn", "refuse")
+#: exit codes per verdict (tools/cli/main.py: 0 ok, 4 warnings, 3 a refusal)
+VERDICT_EXIT = {"ok": 0, "warn": 4, "refuse": 3}
+
+
+def add_doctor_parser(sub: Any) -> None:
+    d = sub.add_parser("doctor", help="preflight of the host, the bus and the drives (timing probe, deadlines)",
+                       description="Run the resident loop's timing probe for --seconds with no axis enabled and "
+                       "judge the host's lateness against every axis's deadline (docs/timing.md).")
+    d.add_argument("--seconds", type=float, default=10.0, help="how long the timing probe runs (default 10)")
+    d.add_argument("--axis", action="append", metavar="NAME", help="the axes to check (default: all)")
+    d.add_argument("--json", action="store_true", help="one JSON object: latency_ms, deadline_ms, cycle_s, "
+                   "granted, verdict")
+    d.add_argument("--out", metavar="PNG", default="doctor-latency.png",
+                   help="the lateness histogram's plot (default doctor-latency.png; not with --json)")
+    d.add_argument("--cpu", type=int, default=None, help="pin the loop's thread to this CPU")
+
+
+def kernel() -> dict[str, Any]:
+    """The running kernel and whether it is PREEMPT_RT (what bounds the OS's wake-up latency)."""
+    version = platform.version()
+    rt = "PREEMPT_RT" in version or "PREEMPT RT" in version
+    try:
+        rt = rt or Path("/sys/kernel/realtime").read_text().strip() == "1"
+    except OSError:
+        pass
+    return {"release": platform.release(), "version": version, "preempt_rt": rt}
+
+
+def probe(cfg: Any, names: list[str], seconds: float, cpu: int | None = None) -> dict[str, Any]:
+    """The loop's own timing probe: the wall-clock loop over the configured bus, no axis enabled."""
+    import math
+
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.cycle import Channel
+    from drivectl.controllers.runtime.loop import ServoLoop
+    from drivectl.machine.build import open_machine, plant_specs
+
+    specs = plant_specs(cfg, names)
+    hw = open_machine(cfg, names)
+    try:
+        channels = [Channel(hw.axes[n], make_controller(cfg.axis(n).controller, cfg.cycle_s,
+                                                        cfg.axis(n).controller_settings, plant=specs[n], axis=n),
+                            None, cfg.axis(n).limits) for n in names]  # type: ignore[arg-type]
+        loop = ServoLoop(channels, clock="wall", stall_s=None, fault_dir=None, cpu=cpu, realtime=True,
+                         deadlines={n: d.seconds for n, d in hw.deadlines.items()})
+        loop.start()
+        try:
+            loop.run_until(lambda: False, seconds)
+            status = loop.status()
+        finally:
+            loop.close()
+        return {"status": status, "latency": loop.latency, "deadlines": hw.deadlines,
+                "drives": drive_sections(hw, names), "cycles": status["cycles"],
+                "finite": all(math.isfinite(v) for v in status["latency_ms"].values())}
+    finally:
+        hw.close()
+
+
+def drive_sections(hw: Any, names: list[str]) -> dict[str, dict[str, str]]:
+    """Per drive, what the master found and wrote: one line per item (identity, 0x6502, mode, mapping,
+    watchdogs, and why it would not enable). The deadline written (0x1400:05) is the timing model's."""
+    out: dict[str, dict[str, str]] = {}
+    for n in names:
+        axis = hw.axes[n]
+        d = hw.deadlines.get(n)
+        sec: dict[str, str] = {}
+        if d is not None:
+            sec["deadline"] = (f"{d.ms} ms written to 0x1400:05 ({d.source}: {d.formula})" if d.ms else
+                               "0x1400:05 = 0: the drive does not watch the master's setpoints")
+        power = getattr(axis, "power", None)
+        if power is not None:
+            sec["power"] = power.value
+        out[n] = sec
+    return out
+
+
+def assess(deadlines: dict[str, Any], dt: float,
+           latency_ms: dict[str, float]) -> tuple[str, dict[str, tuple[str, str]]]:
+    """The verdict over every axis (the worst) and, per axis, its own with the figures."""
+    from drivectl.controllers.runtime.timing import judge
+
+    per = {n: judge(d.seconds, dt, latency_ms) for n, d in deadlines.items()}
+    worst = max((v for v, _ in per.values()), key=VERDICTS.index, default="ok")
+    return worst, per
+
+
+def plot_histogram(latency: Any, deadlines: dict[str, Any], dt: float, path: str | Path) -> Path:
+    """The lateness histogram (log-log) with each axis's margin (deadline - cycle) marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    used = [i for i, c in enumerate(latency.counts) if c]
+    lo, hi = (used[0], used[-1] + 1) if used else (0, 1)
+    edges = [latency.edge(i - 1) * 1e3 for i in range(lo, hi + 1)]  # bin i holds (edge(i-1), edge(i)]
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    ax.stairs(latency.counts[lo:hi], edges, fill=True)
+    margins: dict[float, list[str]] = {}
+    for name, d in deadlines.items():
+        if d.seconds > dt:
+            margins.setdefault(round((d.seconds - dt) * 1e3, 3), []).append(name)
+    for margin, axes in margins.items():
+        ax.axvline(margin, ls="--", lw=0.8, color="C3")
+        ax.text(margin, max(latency.counts), " " + ", ".join(axes), color="C3", va="top", fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("lateness of the cycle's start (ms)")
+    ax.set_ylabel("cycles")
+    ax.set_title(f"{latency.n} cycles of {dt * 1e3:g} ms; dashed: each axis's margin (deadline - cycle)")
+    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from drivectl.controllers.runtime.timing import WAYS_OUT
+    from drivectl.machine.bus_budget import machine_load
+    from drivectl.machine.config import load_config
+
+    if not (args.seconds > 0):
+        print(f"drivectl: doctor: --seconds: must be > 0, got {args.seconds:g}", file=sys.stderr)
+        return 2
+    cfg = load_config(args.config)
+    names = list(args.axis) if args.axis else list(cfg.axes)
+    for n in names:
+        cfg.axis(n)
+    load = machine_load(cfg, names)
+    res = probe(cfg, names, args.seconds, args.cpu)
+    status, deadlines = res["status"], res["deadlines"]
+    lat = status["latency_ms"]
+    verdict, per = assess(deadlines, cfg.cycle_s, lat)
+    if args.json:
+        print(json.dumps({"latency_ms": lat, "deadline_ms": {n: d.ms for n, d in deadlines.items()},
+                          "cycle_s": cfg.cycle_s, "granted": status["granted"], "verdict": verdict}))
+        return VERDICT_EXIT[verdict]
+    k = kernel()
+    print(f"host      {platform.node()}: {os.cpu_count()} CPUs, kernel {k['release']} "
+          f"({'PREEMPT_RT' if k['preempt_rt'] else 'not PREEMPT_RT'}); load average "
+          f"{' '.join(_loadavg())}")
+    print(f"bus       {cfg.bus.interface}:{cfg.bus.channel}: {load.text()}")
+    print(f"probe     {status['cycles']} cycles of {cfg.cycle_s * 1e3:g} ms in {args.seconds:g} s, no axis enabled; "
+          f"{status['missed_deadlines']} missed, {status['skipped_cycles']} skipped")
+    print("lateness  " + "  ".join(f"{q} {v:.3f} ms" for q, v in lat.items()))
+    for what, text in status["granted"].items():
+        print(f"granted   {what}: {text}")
+    for n, d in deadlines.items():
+        v, why = per[n]
+        print(f"axis {n:<4} deadline {d.ms} ms ({d.source}: {d.formula}): {v}: {why}")
+        for item, text in res["drives"].get(n, {}).items():
+            if item != "deadline":
+                print(f"          {item}: {text}")
+    from drivectl.tools.cli.doctor_drive import drive_section
+
+    for n in names:  # each drive as the master finds it, and whether it enables or why not (doctor_drive.py)
+        _, lines = drive_section(cfg, n)
+        print(f"axis {n:<4} " + "\n          ".join(lines))
+    path = plot_histogram(res["latency"], deadlines, cfg.cycle_s, args.out)
+    print(f"histogram {path}")
+    print(f"verdict   {verdict}" + (f" ({WAYS_OUT})" if verdict != "ok" else ""))
+    return VERDICT_EXIT[verdict]
+
+
+def _loadavg() -> list[str]:
+    try:
+        return Path("/proc/loadavg").read_text().split()[:3]
+    except OSError:
+        return ["?"]

@@ -15,9 +15,11 @@ Shared by tests/test_faults.py and bench/faults.py, so the test asserts what the
 
 from __future__ import annotations
 
+import math
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -68,6 +70,9 @@ class Outcome:
     rows: int = 0
     meta: dict[str, str] = field(default_factory=dict)
     note: str = ""
+    #: the bound this case must meet: SAFE_BOUND_CYCLES from the detection, plus the drive's RPDO deadline
+    #: (0x1400:05, in cycles) where only the drive can notice (the master is dead or off the bus)
+    bound_cycles: int = SAFE_BOUND_CYCLES
 
     @property
     def detect_after(self) -> int | None:
@@ -79,7 +84,13 @@ class Outcome:
     @property
     def ok(self) -> bool:
         return (self.detected and self.trace_complete and self.safe_within_cycles is not None
-                and self.safe_within_cycles <= SAFE_BOUND_CYCLES)
+                and self.safe_within_cycles <= self.bound_cycles)
+
+
+def _deadline_cycles(machine: Any, cycle_s: float) -> int:
+    """The drive's RPDO deadline (docs/timing.md) in whole cycles: how long it waits before it stops itself."""
+    d = machine.deadlines.get("x")
+    return math.ceil(d.ms * 1e-3 / cycle_s - 1e-9) if d is not None and d.ms else 0
 
 
 def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duration: float = 0.8,
@@ -140,6 +151,7 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
                 out.kind = f"drive stopped itself (0x603F = 0x{drive.drive.error_code:04X})" if safe is not None else ""
                 out.detect_cycle = history[-1][0] - row0[0] if row0 and history else None
                 out.safe_within_cycles = safe
+                out.bound_cycles = SAFE_BOUND_CYCLES + _deadline_cycles(machine, cfg.cycle_s)
                 out.safe_state = drive.drive.power.value
                 out.exit_reason = "master died (no exit: the process is gone)"
                 # what the dead master streamed stays as a .partial file, every reader reads it (marked
@@ -180,6 +192,7 @@ def run_case(case: str, *, at: float = 0.2, profile: str = "short-move", duratio
                 idle = machine.let_drives_run(50, until_safe=True)["x"]
                 last = history[-1][0] if history else detect_sync
                 truth = None if idle is None else (last - detect_sync) + idle
+                out.bound_cycles = SAFE_BOUND_CYCLES + _deadline_cycles(machine, cfg.cycle_s)
                 out.note = "bus-off: the master cannot reach the drive; it stopped on its RPDO deadline (0x1400:05)"
             out.safe_within_cycles = truth
             out.safe_state = drive.drive.power.value

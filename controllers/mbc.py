@@ -237,9 +237,11 @@ class Mbc(Controller):
         self._Mp = d.F @ (np.eye(na) - d.L @ d.H)
         self._Np = d.F @ d.L
         self._n = n
-        # the cycle as two dot products: s' = W [s, y_pos, y_vel, u_prev]; u = (uff + K xref) - Kf s'
-        self._W = np.ascontiguousarray(np.column_stack([self._Mp, self._Np, d.G]))
+        # the cycle as one product: s' = W [s, y_pos, y_vel, u_prev] and u = (uff + K xref) - Kf s', with
+        # Kf s' = (Kf W) [s, y_pos, y_vel, u_prev] as the last row (one numpy call a cycle, not two)
+        W = np.column_stack([self._Mp, self._Np, d.G])
         self._Kf = np.concatenate([d.K, -d.gd])
+        self._WK = np.ascontiguousarray(np.vstack([W, self._Kf @ W]))
         # standstill (docs/standstill.md): only where the model has Coulomb friction, the set-valued force
         # that holds a resting axis; the integral gain acts on the table position error outside the band
         self._hold = bool(s.standstill) and any(b.has_coulomb for b in self.model.design.bodies)
@@ -251,9 +253,11 @@ class Mbc(Controller):
     def reset(self) -> None:
         self._ensure_design()
         na = self._n + 2
-        self._z = np.zeros(na + 3)  # [s(k|k-1) (plant state, d, d'), y_pos, y_vel, u_prev]
-        self._s = self._z[:na]  # a view: the estimate lives inside the cycle's input vector
-        self._tmp = np.zeros(na)
+        # the cycle's input [s(k|k-1) (plant state, d, d'), y_pos, y_vel, u_prev], twice: each cycle's product
+        # goes into the other one (s' and Kf s' in its first na + 1 places), which then becomes the input
+        self._bufs = tuple((z, z[:na], z[:na + 1]) for z in (np.zeros(na + 3), np.zeros(na + 3)))
+        self._z, self._s, _ = self._bufs[0]  # _s: a view, the estimate lives inside the cycle's input
+        self._other = 1
         self._started = False
         self._u_prev = 0.0  # net command sent last cycle (acting now)
         self._fk = 0.0  # the friction compensation in it
@@ -374,11 +378,13 @@ class Mbc(Controller):
         z[na] = feedback.position
         z[na + 1] = feedback.velocity
         z[na + 2] = self._u_prev
-        np.dot(self._W, z, out=self._tmp)
-        s[:] = self._tmp
+        other = self._other
+        z_next, s_next, out = self._bufs[other]
+        np.dot(self._WK, z, out=out)
+        self._z, self._s, self._other = z_next, s_next, 1 - other
         # the command acts over [k+1, k+2]: feedback K (xref - s) on the state predicted at k+1, and the
         # disturbance over that cycle cancelled (gd)
-        u_net = ffk - float(np.dot(self._Kf, s))
+        u_net = ffk - float(out[na])
         self._u_prev = u_net
         self._fk = fk
         self._k += 1

@@ -24,6 +24,16 @@ class Feedback:
     position: float  # m, as the encoder reports it (quantised at the transport)
     velocity: float  # m/s, as the drive reports it (0x606C on a CiA 402 drive)
 
+    def __init__(self, time: float, position: float, velocity: float) -> None:
+        # made every cycle: the slots are set through their descriptors, not by name through
+        # object.__setattr__ as the generated frozen __init__ does (0.5 us against 0.76)
+        _set_time(self, time)
+        _set_position(self, position)
+        _set_velocity(self, velocity)
+
+
+_set_time, _set_position, _set_velocity = (Feedback.__dict__[k].__set__ for k in ("time", "position", "velocity"))
+
 
 #: what an axis may do last when neither the quick stop (RPDO, SDO) nor NMT Stop is confirmed (the
 #: configuration's ``last_resort``): "nmt-reset" (NMT Reset Node: the drive restarts with its power

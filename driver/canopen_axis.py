@@ -190,8 +190,8 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self._setup_pdos(self.pdo_plan)
         # made once: canopen's subscribe() skips a callback it holds, so reconnecting after a drive
         # reset does not stack a second handler per TPDO (each would count a late frame again)
-        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo))]
         self._arrived = threading.Event()
+        self._tpdo_handlers = [self._tpdo_callback(i) for i in range(len(self._tpdo))]
         self._last_heartbeat = 0
         self.heartbeat_state: int | None = None
         self._booted = threading.Event()
@@ -233,6 +233,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self._tpdo = [PdoLayout.from_entries(od, p.entries) for p in plan.tx]
         self._tpdo_cob = [p.cob_id for p in plan.tx]
         self._fresh = [False] * len(self._tpdo)
+        self._none_fresh = tuple(self._fresh)
         self._raw = [tuple(0 for _ in layout.entries) for layout in self._tpdo]
         at = {e: (i, j) for i, p in enumerate(plan.tx) for j, e in enumerate(p.entries)}
         self._at_sw = at[(cia402.STATUSWORD, 0)]
@@ -248,17 +249,22 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         fresh = self._fresh
         raw = self._raw
 
+        unpack = codec.unpack_from
+        clock = self.clock
+        # in lockstep the frames arrive on the reading thread, before read() looks: no event to wake it
+        arrived = None if self.lockstep else self._arrived
+
         def on_tpdo(can_id: int, data: bytes, timestamp: float) -> None:
             if len(data) != size:  # not the mapping's length: unusable, the cycle is bridged as lost
                 self.frame_guard.reject(can_id, f"{len(data)} data bytes, the mapping has {size}", "tpdo-length")
                 return
-            if self._consumed == self.clock.cycle:
+            if self._consumed == clock.cycle:
                 self.late_total += 1  # for a cycle already used: too late, dropped
                 return
-            raw[i] = codec.unpack_from(data)
+            raw[i] = unpack(data)
             fresh[i] = True
-            if all(fresh):
-                self._arrived.set()
+            if arrived is not None and all(fresh):
+                arrived.set()
 
         return on_tpdo
 
@@ -330,8 +336,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         if not self._connected:
             raise AxisError(f"axis {self.name}: not connected")
         if self._cycle == self.clock.cycle:
-            self._fresh[:] = [False] * len(self._fresh)
-            self._arrived.clear()
+            self._fresh[:] = self._none_fresh
+            if not self.lockstep:  # in lockstep nobody waits on it (on_tpdo)
+                self._arrived.clear()
             try:
                 self.clock.tick()
             except can.CanError as exc:

@@ -113,6 +113,8 @@ _SW_BITS = {
     PowerState.FAULT_REACTION_ACTIVE: 0x1F,
     PowerState.FAULT: 0x08,
 }
+#: the same by the state's value: a str key hashes in C, a PowerState key calls Enum.__hash__ (every cycle)
+_SW_BITS_BY_VALUE = {state.value: bits for state, bits in _SW_BITS.items()}
 
 SW_WARNING = 0x0080
 SW_REMOTE = 0x0200
@@ -130,7 +132,7 @@ def decode_statusword(sw: int) -> PowerState:
 
 def encode_statusword(state: PowerState, *, remote: bool = True, follows: bool = False,
                       warning: bool = False, internal_limit: bool = False) -> int:
-    sw = _SW_BITS[state]
+    sw = _SW_BITS_BY_VALUE[state._value_]
     if remote:
         sw |= SW_REMOTE
     if follows:

@@ -42,7 +42,8 @@ class LockstepBus(can.BusABC):
 
     def __init__(self, link: LockstepLink) -> None:
         self.link = link
-        self._inbox: deque[can.Message] = deque()
+        #: the frames waiting here, oldest first (read only by :meth:`recv`; the lockstep pump peeks at it)
+        self.inbox: deque[can.Message] = deque()
         self._peers: tuple[deque[can.Message], ...] = ()
         super().__init__(channel=link.channel)
         self.channel_info = f"lockstep bus channel {link.channel}"
@@ -52,7 +53,7 @@ class LockstepBus(can.BusABC):
     def _relink(self) -> None:
         # every end's peer inboxes, computed when an end comes or goes (never per frame)
         for end in self.link.ends:
-            end._peers = tuple(e._inbox for e in self.link.ends if e is not end)
+            end._peers = tuple(e.inbox for e in self.link.ends if e is not end)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Stamp ``msg`` as the virtual bus stamps what it delivers (time.time(), the channel, received)
@@ -68,7 +69,7 @@ class LockstepBus(can.BusABC):
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The oldest frame waiting, or None at once: in lockstep nothing can arrive while waiting
         (every frame is sent on the one thread), so ``timeout`` never blocks."""
-        inbox = self._inbox
+        inbox = self.inbox
         filters = self._filters
         while inbox:
             msg = inbox.popleft()
@@ -79,12 +80,12 @@ class LockstepBus(can.BusABC):
         return None
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        inbox = self._inbox
+        inbox = self.inbox
         return (inbox.popleft() if inbox else None), False
 
     def pending(self) -> int:
         """How many frames wait here (a peek: the pump skips an end with none)."""
-        return len(self._inbox)
+        return len(self.inbox)
 
     def shutdown(self) -> None:
         if self._is_shutdown:
@@ -94,4 +95,4 @@ class LockstepBus(can.BusABC):
             self.link.ends.remove(self)
             self._relink()
         self._peers = ()
-        self._inbox.clear()
+        self.inbox.clear()

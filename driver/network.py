@@ -203,8 +203,8 @@ class Lockstep:
         while busy:
             busy = False
             for net in networks:
-                pending = net._pending  # a lockstep bus with nothing waiting is skipped without a call
-                if (pending is None or pending()) and net.pump():
+                inbox = net._inbox  # a lockstep bus with nothing waiting is skipped without a call
+                if (inbox is None or inbox) and net.pump():
                     busy = True
 
     def _serve_wall(self, wall: Callable[[], float]) -> None:
@@ -233,9 +233,10 @@ class LockstepNetwork(canopen.Network):
         super().__init__(bus)
         self.lockstep = lockstep
         lockstep.networks.append(self)
-        self._recv = bus.recv
-        #: a lockstep bus's peek (None on other buses: always polled, e.g. a FaultyBus that raises on receive)
-        self._pending = bus.pending if isinstance(bus, LockstepBus) else None
+        self._recv = self._bus_recv = bus.recv
+        #: a lockstep bus's inbox, peeked at before pumping (:meth:`LockstepBus.pending` without the call; None on
+        #: other buses: always polled, e.g. a FaultyBus that raises on receive)
+        self._inbox = bus.inbox if isinstance(bus, LockstepBus) else None
         self.log: BusLog | None = None
         self.recv_error: can.CanError | None = None
         #: every received frame is checked before canopen's dispatch (driver/frame_guard.py); None on an
@@ -257,10 +258,22 @@ class LockstepNetwork(canopen.Network):
             self._dispatch[can_id] = (callbacks, can_id & 0x7F != 0 and can_id & 0x780 in _SCANNED)
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
-        super().send_message(can_id, data, remote)
+        """canopen's ``Network.send_message`` (the override point it names for a custom backend): the same
+        frame, a new :class:`can.Message` built as canopen builds it, sent under its ``send_lock``; its
+        ``check()`` is left out (it raises what a notifier thread caught, and this network has none).
+        Then every frame this caused is delivered (unless a delivery is already under way further up
+        this thread's stack: that one goes on until the bus is quiet)."""
+        bus = self.bus
+        if not bus:
+            raise RuntimeError("Not connected to CAN bus")
+        msg = can.Message(is_extended_id=can_id > 0x7FF, arbitration_id=can_id, data=data, is_remote_frame=remote)
+        with self.send_lock:
+            bus.send(msg)
         if self.log is not None:
             self.log.sent(can_id, data, remote)
-        self.lockstep.settle()
+        lockstep = self.lockstep
+        if not lockstep._settling:
+            lockstep.settle()
         if self.recv_error is not None:
             exc, self.recv_error = self.recv_error, None
             raise exc
@@ -274,7 +287,12 @@ class LockstepNetwork(canopen.Network):
         notify = self.notify
         dispatch = self._dispatch
         log = self.log
+        # the lockstep bus's own inbox says when it is empty: no last poll that returns None (not when
+        # another receive was put in place of the bus's, e.g. a test's frame injector)
+        inbox = self._inbox if recv is self._bus_recv else None
         while True:
+            if inbox is not None and not inbox:
+                break
             try:
                 msg = recv(0)
             except can.CanError as exc:

@@ -15,6 +15,8 @@ from drivectl.plant_emulator.drive_constants import (
 from drivectl.plant_emulator.pdo_rules import Rpdo
 from drivectl.plant_emulator.remote import subscribe_remote, unsubscribe_remote
 
+_CONTROLWORD, _TARGET_TORQUE, _MODES_OF_OPERATION = cia402.CONTROLWORD, cia402.TARGET_TORQUE, cia402.MODES_OF_OPERATION
+
 
 class DrivePdos:
     _rpdos: dict[int, Rpdo]
@@ -58,41 +60,45 @@ class DrivePdos:
         if rp is None:
             return
         size = rp.layout.codec.size
+        errors = self._errors  # the live set: an error to clear only when one is active (not per cycle)
         if len(data) < size:
             self.frames.reject("short-rpdo", can_id, data, f"RPDO of {len(data)} bytes, mapping needs {size}")
-            if RPDO_SHORT_ERROR not in self._errors:
-                self._errors.add(RPDO_SHORT_ERROR)
+            if RPDO_SHORT_ERROR not in errors:
+                errors.add(RPDO_SHORT_ERROR)
                 self._emcy(RPDO_SHORT_ERROR)
             return  # not processed: for the deadline it is a lost frame
-        self._clear_error(RPDO_SHORT_ERROR)
+        if errors:
+            self._clear_error(RPDO_SHORT_ERROR)
         if len(data) > size:
             self.frames.reject("long-rpdo", can_id, data, f"RPDO of {len(data)} bytes, mapping has {size}: "
                                "the mapped bytes used")
-            if RPDO_LONG_ERROR not in self._errors:
-                self._errors.add(RPDO_LONG_ERROR)
+            if RPDO_LONG_ERROR not in errors:
+                errors.add(RPDO_LONG_ERROR)
                 self._emcy(RPDO_LONG_ERROR)
-        else:
+        elif errors:
             self._clear_error(RPDO_LONG_ERROR)
         store = self.node.data_store
-        values = rp.layout.codec.unpack_from(data)
+        frame = bytes(data)
+        values = rp.layout.codec.unpack_from(frame)
         for (index, sub, offset, width), value in zip(rp.slots, values, strict=True):
             if index < 0x1000:
                 continue  # a dummy entry: bytes meant for another drive
-            if index == cia402.CONTROLWORD:
+            if index == _CONTROLWORD:
                 self.controlword = value
-            elif index == cia402.TARGET_TORQUE:
+            elif index == _TARGET_TORQUE:
                 self.setpoint = value
-            elif index == cia402.MODES_OF_OPERATION:
+            elif index == _MODES_OF_OPERATION:
                 if not self._mode_supported(value):
                     self.frames.reject("rpdo-mode", can_id, data, f"mode {value} not supported: mode kept")
                     continue
                 self._set_mode(value)
-            store.setdefault(index, {})[sub] = bytes(data[offset:offset + width])
+            store.setdefault(index, {})[sub] = frame[offset:offset + width]
         if rp.comm != self._deadline_comm:
             return  # another RPDO (an event-driven controlword, type 255): the deadline watches the one it was set on
         if self._rpdo_timeout_ms:
             self._ms_since_rpdo = 0.0
-        self._clear_error(RPDO_TIMEOUT_ERROR)
+        if errors:
+            self._clear_error(RPDO_TIMEOUT_ERROR)
         if self.faults is not None and self.faults.held:
             self._send_held()  # a late TPDO: after the master's deadline, with its RPDO
 

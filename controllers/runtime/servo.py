@@ -240,10 +240,21 @@ def run_channels(
 def one_blas_thread() -> AbstractContextManager[object]:
     """A context in which BLAS (OpenBLAS under numpy) runs on the calling thread only: the cycle's
     products are a few elements, and a BLAS worker left spinning after each burned about 10 us of CPU
-    per cycle on the other core. Process-wide while it lasts (threadpoolctl), restored after."""
-    from threadpoolctl import threadpool_limits
+    per cycle on the other core. Process-wide while it lasts (threadpoolctl), restored after.
 
-    return threadpool_limits(limits=1, user_api="blas")
+    threadpoolctl finds the BLAS libraries by walking every library the process has loaded (some ms,
+    and a tenth of a 3 s lockstep run's wall time when done per run): they are looked up once, at the
+    first run, and the same controller limits every later run (numpy's and scipy's are loaded by then:
+    the controllers import them)."""
+    global _blas
+    if _blas is None:
+        from threadpoolctl import ThreadpoolController
+
+        _blas = ThreadpoolController()
+    return _blas.limit(limits=1, user_api="blas")
+
+
+_blas = None  # the process's ThreadpoolController, made at the first run (one_blas_thread)
 
 
 @dataclass

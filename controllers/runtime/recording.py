@@ -73,7 +73,7 @@ class Recording:
             # in lockstep (nothing runs on a wall clock beside the loop) the loop writes its own full blocks:
             # no writer thread taking the GIL mid-cycle. Paced, or with drives in another process (their
             # RPDO deadline is on the wall clock), the thread formats them and the loop never waits.
-            inline = not paced and all(getattr(ch.axis, "lockstep", True) for ch in plan.channels)
+            inline = not paced and all(ch.axis.lockstep for ch in plan.channels)
             try:
                 for ch, head in zip(plan.channels, self._head, strict=True):
                     self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head,

@@ -407,9 +407,8 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
-        late = [f"{ch.axis.name} ({ch.axis.power.value}"
-                + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
-                for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        late = [f"{ch.axis.name} ({ch.axis.power.value}" + (f": {why}" if (why := ch.axis.enable_blocker()) else "")
+                + ")" for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {cycles} cycles")
 
 

@@ -300,7 +300,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text}"
                   f"{load_text} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
             for name in names:  # what the boot chose for each drive and what it does for what the drive lacks
-                for note in getattr(machine.axes[name], "boot_notes", ()):
+                for note in machine.axes[name].boot_notes:
                     print(f"{name}: {note}", file=sys.stderr)
 
         from drivectl.controllers.runtime.servo import plan_run

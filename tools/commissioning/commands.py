@@ -302,8 +302,8 @@ def cmd_power(args: argparse.Namespace) -> int:
             ax.read()
             ax.write(0.0)
         if ax.power is not want:
-            why = f": {ax.enable_blocker()}" if want is PowerState.OPERATION_ENABLED and hasattr(ax, "enable_blocker") \
-                else ""
+            blocker = ax.enable_blocker() if want is PowerState.OPERATION_ENABLED else ""
+            why = f": {blocker}" if blocker else ""
             print(f"drivectl: axis {args.axis}: still {ax.power.value} after {STATE_CHANGE_CYCLES} cycles "
                   f"(wanted {want.value}){why}", file=sys.stderr)
             return 1

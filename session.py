@@ -212,11 +212,7 @@ class AxisControl:
     def _check_target(self, what: str, target: float) -> None:
         if not math.isfinite(target):
             raise LimitError(f"axis {self.name}: {what}: target must be a finite number of m, got {target!r}")
-        lim = self._rt.ch.limits
-        if lim.position is not None and not lim.position[0] <= target <= lim.position[1]:
-            origin = f" ({lim.position_source})" if lim.position_source else ""
-            raise LimitError(f"axis {self.name}: {what}: {target:.6f} m is outside the soft limits "
-                             f"[{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; nothing moved")
+        self._rt.ch.limits.refuse_outside(f"axis {self.name}: {what}", target)
 
     def _plan(self, target: float, speed: float | None) -> tuple[float, Any] | None:
         """The controller's preview of a move to ``target`` from where the reference rests now, computed
@@ -359,14 +355,7 @@ class AxisControl:
         offset = here - start if relative else 0.0
         if offset:
             samples[0] = samples[0] + offset
-        lim = rt.ch.limits
-        if lim.position is not None:
-            lo, hi = float(np.min(samples[0])), float(np.max(samples[0]))
-            if lo < lim.position[0] or hi > lim.position[1]:
-                origin = f" ({lim.position_source})" if lim.position_source else ""
-                raise LimitError(f"axis {self.name}: run {profile_name(profile)}: spans [{lo:.6f}, {hi:.6f}] m, "
-                                 f"outside the soft limits [{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; "
-                                 "nothing moved")
+        rt.ch.limits.refuse_outside(f"axis {self.name}: run {profile_name(profile)}", samples[0], t)
         m = rt.motion  # a profile is not generated here, but it moves the axis: the same bounds hold
         for what, arr, bound, key in (("velocity", samples[1], m.max_velocity, "max_velocity_m_s"),
                                       ("acceleration", samples[2], m.max_acceleration, "max_acceleration_m_s2")):

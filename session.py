@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from drivectl.controllers.runtime.approach import REFERENCE_TOLERANCE_M, needs_approach
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, CaptureError, Trigger
 from drivectl.controllers.runtime.handles import MoveStatus
 from drivectl.controllers.runtime.interrupt import stop_on_signals
@@ -363,7 +364,7 @@ class AxisControl:
             if peak > bound * (1 + 1e-9) + 1e-12:
                 raise LimitError(f"axis {self.name}: run {profile_name(profile)}: {what} {peak:g} exceeds the axis's "
                                  f"{key} {bound:g} ([axes.{self.name}.motion]); nothing moved")
-        far = abs(start + offset - here) > 1e-6
+        far = needs_approach(here, start + offset, REFERENCE_TOLERANCE_M)
         if far and not approach:
             raise LimitError(f"axis {self.name}: run {profile_name(profile)}: the axis stands at {here:.6f} m, the "
                              f"profile starts at {start:.6f} m (approach=True moves it there first, relative=True "

@@ -303,10 +303,11 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                 for note in machine.axes[name].boot_notes:
                     print(f"{name}: {note}", file=sys.stderr)
 
+        from drivectl.controllers.runtime.approach import plan_approach, where_axes_stand
         from drivectl.controllers.runtime.servo import plan_run
-        from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand
+        from drivectl.tools.cli.approach import consent
 
-        # an axis away from its profile's start is moved there first, shown and agreed (tools/cli/approach.py)
+        # an axis away from its profile's start is moved there first, shown and agreed (controllers/runtime/approach.py)
         approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
         if approach is not None:
             consent(args.approach, moves)

@@ -49,6 +49,7 @@ from drivectl.controllers.runtime.loop import (
     drive_error,
 )
 from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
+from drivectl.controllers.runtime.recording import trace_header
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
 from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
@@ -380,10 +381,7 @@ class AxisControl:
         if record is not None:
             from drivectl.tracefile.stream import TraceWriter
 
-            ax = rt.ch.axis
-            head = {"axis": self.name, "effort_unit": ax.effort_unit, "dt_s": format_value(loop.dt),
-                    **{k: format_value(v) for k, v in rt.ch.controller.describe().items()}, **meta,
-                    "bus": self._m.bus, "clock": loop.clock}
+            head = self._header(meta)
             handle._writer = TraceWriter(record, self.name, columns=("time_s", "ref_m", "pos_m", "effort", "vel_m_s"),
                                          meta=head).start()
             run.append = handle._writer.append
@@ -398,7 +396,7 @@ class AxisControl:
             rt.handle = handle
             handle.status = MoveStatus.MOVING
             rt.move_started = True
-            handle._run_meta = meta  # type: ignore[attr-defined]
+            handle._run_meta = meta
             handle._trace_fn = self.run_trace
 
         if far:
@@ -409,19 +407,21 @@ class AxisControl:
             loop.submit(begin)
         return handle
 
+    def _header(self, meta: dict[str, str] | None = None, controller: bool = True) -> dict[str, str]:
+        """This axis's trace header (controllers/runtime/recording.py ``trace_header``): ``meta`` and the bus."""
+        loop = self._m.loop
+        return trace_header(self._rt.ch.axis, loop.dt, self._rt.ch.controller if controller else None,
+                            {**(meta or {}), "bus": self._m.bus}, paced=loop.clock == "wall")
+
     def run_trace(self, handle: Move) -> Trace:
         """The record of a finished run (trace v1: time_s, ref_m, pos_m, effort, vel_m_s)."""
         run = handle._run
         if not isinstance(run, ProfileRun):
             raise ValueError(f"axis {self.name}: {handle.kind} has no run record")
         n = run.k
-        ax = self._rt.ch.axis
         cols = {"time_s": np.arange(n) * self._m.loop.dt, "ref_m": np.asarray(run.refs[0][:n]),
                 "pos_m": run.rec[0, :n], "effort": run.rec[2, :n], "vel_m_s": run.rec[1, :n]}
-        meta = {"axis": self.name, "effort_unit": ax.effort_unit, "dt_s": format_value(self._m.loop.dt),
-                **{k: format_value(v) for k, v in self._rt.ch.controller.describe().items()},
-                **getattr(handle, "_run_meta", {}), "cycles": str(n), "stop": handle.status,
-                "bus": self._m.bus, "clock": self._m.loop.clock}
+        meta = {**self._header(handle._run_meta), "cycles": str(n), "stop": handle.status}
         if handle.detail:
             meta["stop_detail"] = handle.detail
         return Trace(cols, meta)
@@ -474,8 +474,7 @@ class AxisControl:
         if pre_n + 1 + post_n > ring:
             raise CaptureError(f"capture: pre + post = {pre + post:g} s is longer than the ring "
                                f"({ring * loop.dt:g} s; connect(ring_s=...))")
-        meta = {"effort_unit": self._rt.ch.axis.effort_unit, "bus": self._m.bus, "clock": loop.clock}
-        cap = Capture(self.name, tuple(channels), trig, pre_n, post_n, loop.dt, meta)
+        cap = Capture(self.name, tuple(channels), trig, pre_n, post_n, loop.dt, self._header(controller=False))
         cap.run_until = self._m.run_until
         cap.plot_apart = loop.clock == "wall"
         loop.submit(lambda: self._rt.captures.append(cap))

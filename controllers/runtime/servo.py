@@ -41,7 +41,7 @@ from drivectl.controllers.runtime.cycle import (
 )
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
-from drivectl.controllers.runtime.recording import Recording, RunResult
+from drivectl.controllers.runtime.recording import Recording, RunResult, trace_header
 from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.safe_stop import stop_channels
 from drivectl.driver.axis import Axis, AxisError, FaultKind
@@ -401,4 +401,4 @@ def _progress(n: int, enabled: bool):
 __all__ = ["CHECK_WINDOW_S", "MAX_RUN_CYCLES", "MAX_STREAMED_CYCLES", "REF_CHUNK", "SAFE_STATES", "STATE_CHANGE_CYCLES",
            "Channel", "CycleFault", "Fault", "LimitError", "Limits", "Pacer", "Recording", "RunOutcome", "RunPlan",
            "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "plan_run", "run",
-           "run_channels", "run_preview", "sample_axis"]
+           "run_channels", "run_preview", "sample_axis", "trace_header"]

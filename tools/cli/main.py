@@ -204,7 +204,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
 
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.servo import Channel, StopReason, check_run_length, run_channels
-    from drivectl.machine.build import axis_profile, model_specs, open_machine, plant_specs
+    from drivectl.machine.build import axis_profile, machine_meta, model_specs, open_machine, plant_specs
     from drivectl.machine.config import load_config
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
@@ -272,12 +272,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
-                    "bus": machine.bus, "config": cfg.source}
-            if effects:
-                meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
-            if faults:
-                meta["injected"] = "; ".join(str(f) for f in faults)
+            profile = args.profile or ac.profile
+            meta = machine_meta(cfg, machine, specs[name], models[name], profile, effects, faults or ())
             axis = machine.axes[name]
             # limits the configuration leaves out come from the drive (0x6065/0x6066, 0x607D)
             limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits

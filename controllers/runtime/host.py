@@ -1,12 +1,14 @@
-"""The process-wide measures a wall-clock loop takes for its thread: the garbage collector, the GIL and
-the BLAS thread pool.
+"""The process-wide measures a wall-clock loop takes for its thread: the garbage collector, the GIL, the
+BLAS thread pool and the priority of the process's other threads.
 
 Both are the process's, not a loop's: the first wall-clock loop takes them, the last one gives them back.
 """
 
 from __future__ import annotations
 
+import errno
 import gc
+import os
 import sys
 import threading
 
@@ -88,3 +90,63 @@ def release_blas() -> None:
         if _blas_holders == 0 and _blas_limit is not None:
             _blas_limit.restore_original_limits()
             _blas_limit = None
+
+
+# The loop's thread runs at SCHED_FIFO, but it shares the GIL, and the bus lock, with the process's other
+# threads (the program's, a console's, the trace writer). A program beside the loop at the same nice
+# level takes the CPU from such a thread while it holds the GIL, and the loop then waits a whole CFS
+# slice (several ms) for it: a priority inversion. The first wall-clock loop raises the process's other
+# threads to the top of the normal class (threads they start inherit it), the last one puts back what it
+# changed. Linux's setpriority takes a thread id for PRIO_PROCESS.
+OTHER_THREADS_NICE = -20
+_nice_holders = 0
+_nice_was: dict[int, int] = {}
+
+
+def _thread_ids() -> list[int]:
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return []
+
+
+def take_nice(loop_tid: int) -> str:
+    """Raise every other normal-class thread of the process to nice -20; returns what was granted."""
+    global _nice_holders
+    with _gc_lock:
+        _nice_holders += 1
+        if _nice_holders > 1:
+            return f"the process's other threads at nice {OTHER_THREADS_NICE} (by the first loop)"
+        refused = ""
+        for tid in _thread_ids():
+            if tid == loop_tid:
+                continue
+            try:
+                if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+                    continue  # a real-time thread (another loop's) keeps its class
+                was = os.getpriority(os.PRIO_PROCESS, tid)
+                if was > OTHER_THREADS_NICE:
+                    os.setpriority(os.PRIO_PROCESS, tid, OTHER_THREADS_NICE)
+                    _nice_was[tid] = was
+            except OSError as exc:
+                if exc.errno in (errno.EPERM, errno.EACCES):
+                    refused = exc.strerror or "not permitted"
+                # ESRCH: the thread ended meanwhile
+        if refused and not _nice_was:
+            return f"the process's other threads at their nice level ({refused}: a program beside the loop " \
+                   "may hold the GIL off it while descheduled)"
+        return (f"the process's other threads at nice {OTHER_THREADS_NICE}: one holding the GIL or the bus "
+                "lock is not descheduled by a program beside the loop")
+
+
+def release_nice() -> None:
+    global _nice_holders
+    with _gc_lock:
+        _nice_holders -= 1
+        if _nice_holders == 0:
+            for tid, was in _nice_was.items():
+                try:
+                    os.setpriority(os.PRIO_PROCESS, tid, was)
+                except OSError:
+                    pass  # ended meanwhile
+            _nice_was.clear()

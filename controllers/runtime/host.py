@@ -93,14 +93,17 @@ def release_blas() -> None:
 
 
 # The loop's thread runs at SCHED_FIFO, but it shares the GIL, and the bus lock, with the process's other
-# threads (the program's, a console's, the trace writer). A program beside the loop at the same nice
-# level takes the CPU from such a thread while it holds the GIL, and the loop then waits a whole CFS
-# slice (several ms) for it: a priority inversion. The first wall-clock loop raises the process's other
-# threads to the top of the normal class (threads they start inherit it), the last one puts back what it
-# changed. Linux's setpriority takes a thread id for PRIO_PROCESS.
+# threads (the program's, a console's, the loop's watchdog). When one of them asks for the GIL, the loop
+# hands it over within the switch interval and then waits until that thread has actually taken it: if
+# the thread is of the normal class and a program beside the loop has its CPU, the loop waits a whole
+# scheduler slice (measured: 11-54 ms late wake-ups every few seconds at load 10, while cyclictest saw at
+# most 2 ms). The first wall-clock loop puts the process's other threads in the real-time class too, below
+# the loop (threads they start inherit it), the last one puts back what it changed; where the OS refuses
+# the real-time class, the top of the normal class (nice -20). Linux's calls take a thread id.
+OTHER_THREADS_FIFO = 10
 OTHER_THREADS_NICE = -20
-_nice_holders = 0
-_nice_was: dict[int, int] = {}
+_others_holders = 0
+_others_was: dict[int, tuple[int, int, int]] = {}  # tid -> (policy, rt priority, nice)
 
 
 def _thread_ids() -> list[int]:
@@ -110,43 +113,63 @@ def _thread_ids() -> list[int]:
         return []
 
 
-def take_nice(loop_tid: int) -> str:
-    """Raise every other normal-class thread of the process to nice -20; returns what was granted."""
-    global _nice_holders
+def _raise_thread(tid: int) -> str:
+    """Raise one normal-class thread: "fifo", "nice", or "" (it ended, or nothing was permitted)."""
+    was = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority, os.getpriority(os.PRIO_PROCESS, tid))
+    try:
+        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(OTHER_THREADS_FIFO))
+        _others_was[tid] = was
+        return "fifo"
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.EACCES):
+            raise
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, OTHER_THREADS_NICE)
+        _others_was[tid] = was
+        return "nice"
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.EACCES):
+            raise
+    return ""
+
+
+def take_others(loop_tid: int) -> str:
+    """Put every other normal-class thread of the process at SCHED_FIFO 10 (else nice -20); returns what
+    was granted."""
+    global _others_holders
     with _gc_lock:
-        _nice_holders += 1
-        if _nice_holders > 1:
-            return f"the process's other threads at nice {OTHER_THREADS_NICE} (by the first loop)"
-        refused = ""
+        _others_holders += 1
+        if _others_holders > 1:
+            return "the process's other threads raised by the first loop"
+        got = set()
         for tid in _thread_ids():
             if tid == loop_tid:
                 continue
             try:
                 if os.sched_getscheduler(tid) != os.SCHED_OTHER:
                     continue  # a real-time thread (another loop's) keeps its class
-                was = os.getpriority(os.PRIO_PROCESS, tid)
-                if was > OTHER_THREADS_NICE:
-                    os.setpriority(os.PRIO_PROCESS, tid, OTHER_THREADS_NICE)
-                    _nice_was[tid] = was
-            except OSError as exc:
-                if exc.errno in (errno.EPERM, errno.EACCES):
-                    refused = exc.strerror or "not permitted"
-                # ESRCH: the thread ended meanwhile
-        if refused and not _nice_was:
-            return f"the process's other threads at their nice level ({refused}: a program beside the loop " \
-                   "may hold the GIL off it while descheduled)"
-        return (f"the process's other threads at nice {OTHER_THREADS_NICE}: one holding the GIL or the bus "
-                "lock is not descheduled by a program beside the loop")
+                got.add(_raise_thread(tid))
+            except OSError:
+                pass  # ESRCH: the thread ended meanwhile
+        if "fifo" in got and got <= {"fifo"}:
+            return (f"the process's other threads at SCHED_FIFO {OTHER_THREADS_FIFO}, below the loop: one holding the "
+                    "GIL or the bus lock is not descheduled by a program beside the loop")
+        if got - {""}:
+            return (f"the process's other threads at nice {OTHER_THREADS_NICE} (SCHED_FIFO not granted): a program "
+                    "beside the loop may still hold the GIL off it for a scheduler slice")
+        return ("the process's other threads at their priority (not permitted): a program beside the loop may hold "
+                "the GIL off it for a scheduler slice")
 
 
-def release_nice() -> None:
-    global _nice_holders
+def release_others() -> None:
+    global _others_holders
     with _gc_lock:
-        _nice_holders -= 1
-        if _nice_holders == 0:
-            for tid, was in _nice_was.items():
+        _others_holders -= 1
+        if _others_holders == 0:
+            for tid, (policy, prio, nice) in _others_was.items():
                 try:
-                    os.setpriority(os.PRIO_PROCESS, tid, was)
+                    os.sched_setscheduler(tid, policy, os.sched_param(prio))
+                    os.setpriority(os.PRIO_PROCESS, tid, nice)
                 except OSError:
                     pass  # ended meanwhile
-            _nice_was.clear()
+            _others_was.clear()

@@ -38,7 +38,7 @@ def test_the_machine_writes_each_axis_deadline_to_its_drive():
     with open_machine(cfg, ["x", "z"]) as m:
         assert {n: d.ms for n, d in m.deadlines.items()} == {"x": 17, "z": 12}  # docs/timing.md
         for n in ("x", "z"):
-            assert m.drives[n]._rpdo_timeout_ms == m.deadlines[n].ms  # what the drive was written (0x1400:05) and watches
+            assert m.drives[n]._rpdo_timeout_ms == m.deadlines[n].ms  # written to the drive (0x1400:05), watched
 
 
 def test_latency_record_percentiles_and_verdicts():

@@ -92,7 +92,10 @@ class DrivePdos:
                     self.frames.reject("rpdo-mode", can_id, data, f"mode {value} not supported: mode kept")
                     continue
                 self._set_mode(value)
-            store.setdefault(index, {})[sub] = frame[offset:offset + width]
+            entries = store.get(index)
+            if entries is None:
+                entries = store[index] = {}
+            entries[sub] = frame[offset:offset + width]
         if rp.comm != self._deadline_comm:
             return  # another RPDO (an event-driven controlword, type 255): the deadline watches the one it was set on
         if self._rpdo_timeout_ms:

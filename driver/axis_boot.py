@@ -93,12 +93,18 @@ class AxisBoot:
         loaded VM answers late by a factor the defaults cannot know. The waits count this process's
         running time only (driver/running_time.py): a stall of our own host is not the drive's."""
         self.peer_rtt = rtt
-        self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
-        self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
+        # at most the boot-up's wait: one outlier (a stall of seconds) must not make every later silence,
+        # a real one included, take minutes to be noticed
+        cap = max(self._sdo_timeout, self.timeout)
+        self.node.sdo.RESPONSE_TIMEOUT = min(cap, max(self._sdo_timeout, PEER_RTT_FACTOR * rtt))
+        self.tpdo_timeout = min(cap, max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt))
         # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs up to half
-        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016): a slow
-        # drive is waited for, and a master that gives up still sends its next SYNC within the drive's window
-        self._unpaced_wait = max(self.tpdo_timeout, 1.5 * self.clock.heartbeat_cycles * self.dt)
+        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016), on the
+        # wall clock too (read()): a slow drive is waited for, and a master that gives up still sends its next
+        # SYNC within the drive's window, however slow the drive's SDO answers were
+        tolerance = 1.5 * self.clock.heartbeat_cycles * self.dt
+        self._unpaced_wait = max(self.tpdo_timeout, tolerance)
+        self._unpaced_wall = tolerance or None
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up

@@ -143,6 +143,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         # the floors of the timeouts adapted to the drive's measured answer time at connect() (_adapt_to_peer)
         self._tpdo_timeout = tpdo_timeout
         self._unpaced_wait = tpdo_timeout
+        self._unpaced_wall: float | None = None  # the drive's SYNC tolerance bounds it (_adapt_to_peer)
         self._paced = False  # a run paced on the wall clock is under way (pace())
         self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
@@ -358,7 +359,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             if self._paced:  # a deadline on the wall clock
                 self._arrived.wait(self.tpdo_timeout)
             else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
-                wait_running(self._arrived, self._unpaced_wait)
+                wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
         self._consumed = cycle
         if self._foreign is not None and not self._foreign_seen:
             self._foreign_seen = True  # raised once; the stop that follows must still cycle

@@ -35,17 +35,29 @@ def _counted(step: float, took: float) -> float:
     return step if took > STALL_FACTOR * step + _TICK_S else took
 
 
-def wait_running(event: threading.Event, timeout: float, clock: Callable[[], float] = time.monotonic) -> bool:
-    """``event.wait(timeout)`` with ``timeout`` in this process's running time; whether the event is set."""
+def wait_running(event: threading.Event, timeout: float, clock: Callable[[], float] = time.monotonic,
+                 wall_limit: float | None = None) -> bool:
+    """``event.wait(timeout)`` with ``timeout`` in this process's running time; whether the event is set.
+    ``wall_limit``: never wait longer than this on the wall clock either (the peer's own watchdog runs on its
+    wall clock), except for one more slice after a stall: what arrived while this process did not run is
+    taken before giving up."""
     counted = 0.0
+    start = clock()
+    stalled = False
     while True:
         step = min(SLICE_S, timeout - counted)
         if step <= 0:
             return event.is_set()
+        if wall_limit is not None and clock() - start >= wall_limit:
+            if not stalled:
+                return event.is_set()
+            step = SLICE_S  # the grace slice
         t0 = clock()
         if event.wait(step):
             return True
-        counted += _counted(step, clock() - t0)
+        took = clock() - t0
+        stalled = took > STALL_FACTOR * step + _TICK_S
+        counted += step if stalled else took
 
 
 def get_running(q: queue.Queue, timeout: float, clock: Callable[[], float] = time.monotonic) -> Any:

@@ -53,6 +53,17 @@ def test_a_silent_peer_is_given_up_on_after_the_timeout_of_running_time():
     assert stalled.waits == round(0.3 / SLICE_S)  # bounded: never more slices than the timeout holds
 
 
+def test_a_wall_limit_bounds_the_wait_but_takes_what_came_during_a_stall():
+    clock = _Clock()
+    ev = _Event(clock, after=None, stretch=1.0)
+    assert not wait_running(ev, 1.0, clock, wall_limit=0.15)  # the peer's watchdog runs on its wall clock
+    assert clock.t == pytest.approx(0.16)  # whole slices: the first to end past the limit
+    clock = _Clock()
+    ev = _Event(clock, after=3, stretch=10.0)  # stalled past the limit: the answer waiting is still taken
+    assert wait_running(ev, 1.0, clock, wall_limit=0.15)
+    assert ev.waits == 3
+
+
 class _Queue:
     def __init__(self, clock: _Clock, answer_at: int | None, stretch: float):
         self.clock, self.answer_at, self.stretch, self.gets = clock, answer_at, stretch, 0

@@ -9,6 +9,7 @@ from helpers import SimWallClock
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.servo import Channel, Pacer, StopReason, run_channels
+from drivectl.driver.axis import Axis
 from drivectl.machine.build import open_machine
 from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.profiles.library import load_profile
@@ -16,7 +17,7 @@ from drivectl.tools.cli.main import main
 from drivectl.tracefile.format import Trace
 
 
-class _Axis:
+class _Axis(Axis):
     def __init__(self, name: str, lost: int | None = None) -> None:
         self.name = name
         if lost is not None:
@@ -85,7 +86,7 @@ def test_clipped_past_the_fault_threshold_stops_the_run_mid_run(tmp_path, capsys
     than half of the first 1000 cycles are clipped, the stop verified by the drive, the trace kept."""
     path = tmp_path / "machine.toml"
     # a weak drive (0.5 N) that the window lets lag: clipped nearly every cycle, no other limit trips
-    text = DEFAULT_CONFIG_TOML.replace("max_effort = 2000.0             # N", "max_effort = 0.5 # N", 1).replace(
+    text = DEFAULT_CONFIG_TOML.replace("max_effort = 300.0              # N", "max_effort = 0.5 # N", 1).replace(
         "following_error_m = 0.001       # window", "following_error_m = 0.09", 1)
     assert text != DEFAULT_CONFIG_TOML
     path.write_text(text)

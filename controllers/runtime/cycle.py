@@ -19,7 +19,8 @@ from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
-from drivectl.profiles.base import Profile, Reference
+from drivectl.errors import InputError
+from drivectl.profiles.base import Profile, Reference, outside_soft_limits, soft_limit_text
 
 
 class StopReason(Enum):
@@ -30,6 +31,10 @@ class StopReason(Enum):
     FAULT = "fault"
     AXIS_ERROR = "axis error"
 
+
+
+class LimitError(InputError):
+    """A run or a move was refused before anything moved (outside the limits, the axis not at the start)."""
 
 
 @dataclass(frozen=True)
@@ -50,12 +55,31 @@ class Limits(Settings):
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
 
+    def inside(self, position: float) -> bool:
+        """``position`` (m) lies within the soft limits (always, without them)."""
+        return self.position is None or outside_soft_limits(self.position, position) is None
+
+    def refuse_outside(self, who: str, positions: object, times: object = None) -> None:
+        """The soft-limit refusal, for every caller (a move's target, a run, a profile): LimitError, one line
+        naming ``who`` ("axis x: move_to"), the first of ``positions`` (m; at ``times`` s) outside the soft
+        limits, and where the limits come from; nothing has moved. Nothing without soft limits."""
+        if self.position is None:
+            return
+        outside = outside_soft_limits(self.position, positions, times)
+        if outside is not None:
+            origin = f" ({self.position_source})" if self.position_source else ""
+            raise LimitError(f"{who}: {outside}{origin}; nothing moved")
+
     def validate(self, source: str = "limits", prefix: str = "") -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
             raise SettingsError(f"{source}: {prefix}position: lower limit must be below upper, got {self.position}")
         super().validate(source, prefix)
 
 
+
+#: the longest a power-state change may take: a drive with a holding brake reports Operation Enabled once
+#: the brake has released, and leaves it once the brake has engaged (tens to hundreds of ms), s
+BRAKE_WAIT_S = 0.5
 
 #: power states with the torque off: where a stop must end
 SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT,
@@ -129,12 +153,15 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
 
 
 def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
-    """The control law, clipped to the effort limit (clipped cycles counted)."""
+    """The control law, clipped to the effort limit (clipped cycles counted). A clipped cycle tells the law
+    what was applied: an observer that took its own unclipped command for what acted would read the
+    difference as a disturbance and wind up against the limit (the anti-windup of an observer)."""
     u = ch.controller.step(ref, fb)
     lim = ch.limits.max_effort
     if u > lim or u < -lim:
         ch.clipped += 1
-        return lim if u > 0 else -lim
+        u = lim if u > 0 else -lim
+        ch.controller.note_applied(u)
     return u
 
 
@@ -176,9 +203,9 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
             f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
             "violent oscillation)")
-    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
+    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):  # inline: every cycle
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
-            f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
+            f"axis {name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
     err = ref - pos
     if err > lim.following_error or err < -lim.following_error:
         since = ch.following_since

@@ -19,7 +19,6 @@ three) are counted, and the fault (kind, cycle, statusword, 0x603F text) goes in
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -29,10 +28,12 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.cycle import (
+    BRAKE_WAIT_S,
     SAFE_STATES,
     Channel,
     CycleFault,
     Fault,
+    LimitError,
     Limits,
     StopReason,
     check_and_write,
@@ -41,18 +42,12 @@ from drivectl.controllers.runtime.cycle import (
 )
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
-from drivectl.controllers.runtime.recording import Recording, RunResult
+from drivectl.controllers.runtime.recording import Recording, RunResult, trace_header
 from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.safe_stop import stop_channels
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState
-from drivectl.errors import InputError
-from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
-
-
-class LimitError(InputError):
-    """A run was refused before anything moved (profile outside limits, axis not at the start)."""
-
+from drivectl.profiles.base import Profile, Reference, profile_name
 
 #: the most cycles a run records in memory (``keep=True``: 32 bytes per cycle and axis), one hour at 1 kHz
 MAX_RUN_CYCLES = 3_600_000
@@ -89,21 +84,29 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
+def offset_profile(profile: Profile, offset: float) -> Profile:
+    """``profile`` shifted by ``offset`` m (a relative run of the resident loop); itself when 0."""
+    return _Offset(profile, offset) if offset else profile  # type: ignore[return-value]
+
+
 def run_preview(controller: Controller, profile: Profile, times: np.ndarray, offset: float = 0.0) -> object:
     """The controller's reference preview for a run of ``profile`` at the run's cycle times ``times``
     (controllers/base.py ``preview``), the profile's positions shifted by ``offset`` (a relative run of
     the resident loop). A one-shot run prepares the controller with the same profile and times
     (:func:`run_channels`); the resident loop computes this outside its cycle (``Controller.preview``
     only reads) and installs it with ``use_preview`` in the cycle the run takes the axis."""
-    return controller.preview(_Offset(profile, offset) if offset else profile, np.asarray(times, dtype=float))
+    return controller.preview(offset_profile(profile, offset), np.asarray(times, dtype=float))
 
 
 class _Offset:
-    """``profile`` with its positions shifted by ``offset`` m (a relative run)."""
+    """``profile`` with its positions shifted by ``offset`` m (a relative run; its name and file kept for
+    the messages)."""
 
     def __init__(self, profile: Profile, offset: float):
         self._p, self._offset = profile, offset
         self.duration = profile.duration
+        self.name = profile_name(profile)
+        self.source = getattr(profile, "source", None)
 
     def sample(self, t: np.ndarray):
         r, *rest = self._p.sample(t)
@@ -118,8 +121,12 @@ REF_CHUNK = 8192
 class RunPlan:
     """A run checked before anything moves: the channels, the cycle count and, chunk by chunk, every
     channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths; the next
-    :data:`REF_CHUNK` cycles are sampled when the cycle reaches them, so the memory does not grow with
-    the run's length). ``keep``: the run's record is also held in memory (see :class:`Recording`)."""
+    ``chunk`` cycles are sampled when the cycle reaches them, so the memory does not grow with the run's
+    length). ``keep``: the run's record is also held in memory (see :class:`Recording`).
+
+    The one record of a run's references for both runners: a one-shot run (:func:`run_channels`) and
+    the resident loop's profile run (controllers/runtime/handles.py ``ProfileRun``, a cursor through a
+    plan of one channel, all of it loaded: nothing is sampled in the loop's cycle)."""
 
     channels: Sequence[Channel]
     dt: float
@@ -127,6 +134,7 @@ class RunPlan:
     refs: list[list[list[float]]] = field(default_factory=list)  # the chunk that starts at cycle ``base``
     base: int = 0
     keep: bool = True
+    chunk: int = REF_CHUNK
 
     @property
     def cycles(self) -> int:
@@ -139,16 +147,18 @@ class RunPlan:
 
     def load(self, k0: int) -> None:
         """Sample the chunk of references that starts at cycle ``k0``."""
-        t = np.arange(k0, min(k0 + REF_CHUNK, self.n)) * self.dt
+        t = np.arange(k0, min(k0 + self.chunk, self.n)) * self.dt
         self.refs = [[a.tolist() for a in ch.profile.sample(t)] for ch in self.channels]
         self.base = k0
 
 
-def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True) -> RunPlan:
+def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True,
+             chunk: int | None = REF_CHUNK) -> RunPlan:
     """Check the channels and their profiles against the limits and sample the first references
     (LimitError or ValueError, nothing moved). Planning a second run before the first ends (an approach
     move, then the profile) lets the second follow the first within one cycle. ``keep=False``: the run
-    is recorded only where it streams (``run_channels(stream=...)``), at constant memory."""
+    is recorded only where it streams (``run_channels(stream=...)``), at constant memory. ``chunk``:
+    cycles of reference sampled at a time (None: all of them now)."""
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -165,7 +175,7 @@ def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep
     n = check_run_length(total, dt, what, streamed=not keep)
     for ch in channels:
         _check_profile(ch, (n - 1) * dt)
-    plan = RunPlan(channels, dt, n, keep=keep)
+    plan = RunPlan(channels, dt, n, keep=keep, chunk=chunk or n)
     plan.load(0)
     return plan
 
@@ -277,7 +287,7 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
             if request.signum:
                 raise _Interrupted  # at a cycle boundary: no frame is half-handled
             j = k - base
-            if j == REF_CHUNK:  # the next chunk of references (bounded memory), before the deadline wait
+            if j == plan.chunk:  # the next chunk of references (bounded memory), before the deadline wait
                 plan.load(k)
                 refs, base, j = plan.refs, k, 0
             if pacer is not None:
@@ -335,44 +345,27 @@ class _Interrupted(Exception):
 
 
 def _check_profile(ch: Channel, until: float) -> None:
-    """Refuse a profile that leaves the soft limits anywhere in the run (before anything moves)."""
+    """Refuse a profile that leaves the soft limits anywhere in the run (before anything moves), sampled
+    at :data:`CHECK_RATE_HZ` a window at a time: the check's memory does not grow with the run's length."""
     lim = ch.limits
     if lim.position is not None:
-        try:
-            t0 = 0.0
-            while True:  # a window at a time: the check's memory does not grow with the run's length
-                span = min(until - t0, CHECK_WINDOW_S)
-                profile = ch.profile if t0 == 0.0 else _Shifted(ch.profile, t0)
-                try:
-                    check_limits(profile, position=lim.position, until=span)
-                except ProfileError as exc:
-                    raise ProfileError(re.sub(r"at t=([0-9.]+) s", lambda m, t0=t0: f"at t={float(m[1]) + t0:.3f} s",
-                                              str(exc), count=1)) from None
-                t0 += span
-                if t0 >= until:
-                    break
-        except ProfileError as exc:
-            origin = f" ({lim.position_source})" if lim.position_source else ""
-            raise LimitError(f"axis {ch.axis.name}: {exc}{origin}; nothing moved") from None
+        source = getattr(ch.profile, "source", None)
+        who = f"axis {ch.axis.name}: profile {profile_name(ch.profile)}{f' ({source})' if source else ''}"
+        t0 = 0.0
+        while True:
+            span = min(until - t0, CHECK_WINDOW_S)
+            t = np.linspace(0.0, span, max(2, math.ceil(span * CHECK_RATE_HZ) + 1)) + t0
+            lim.refuse_outside(who, ch.profile.sample(t)[0], t)
+            t0 += span
+            if t0 >= until:
+                break
     ch.following_since = None
     ch.last_position = None
 
 
-#: the soft-limit check of a run samples this much of the profile at a time (s)
+#: the soft-limit check of a run samples this much of the profile at a time (s), at this rate (Hz)
 CHECK_WINDOW_S = 600.0
-
-
-class _Shifted:
-    """``profile`` seen from ``t0`` on (its name and file kept for the messages)."""
-
-    def __init__(self, profile: Profile, t0: float):
-        self._p, self._t0 = profile, t0
-        self.name = getattr(profile, "name", None) or profile_name(profile)
-        self.source = getattr(profile, "source", None)
-        self.duration = max(profile.duration - t0, 0.0)
-
-    def sample(self, t: np.ndarray):
-        return self._p.sample(np.asarray(t) + self._t0)
+CHECK_RATE_HZ = 2000.0
 
 
 def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
@@ -382,8 +375,6 @@ def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
 
 #: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
 STATE_CHANGE_CYCLES = 20
-#: the longest an enable may take (a holding brake's release delay included), s
-ENABLE_WAIT_S = 0.5
 
 
 def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool],
@@ -403,13 +394,12 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     for ch in channels:
         ch.axis.enable()
     # a drive with a holding brake reports Operation Enabled once the brake has released (tens to
-    # hundreds of ms): wait ENABLE_WAIT_S, not just the few cycles of the state machine itself
-    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
+    # hundreds of ms): wait BRAKE_WAIT_S, not just the few cycles of the state machine itself
+    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(BRAKE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
-        late = [f"{ch.axis.name} ({ch.axis.power.value}"
-                + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
-                for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        late = [f"{ch.axis.name} ({ch.axis.power.value}" + (f": {why}" if (why := ch.axis.enable_blocker()) else "")
+                + ")" for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {cycles} cycles")
 
 
@@ -424,5 +414,5 @@ def _progress(n: int, enabled: bool):
 #: the run's vocabulary, importable from here as from its own modules (cycle, pacing, recording)
 __all__ = ["CHECK_WINDOW_S", "MAX_RUN_CYCLES", "MAX_STREAMED_CYCLES", "REF_CHUNK", "SAFE_STATES", "STATE_CHANGE_CYCLES",
            "Channel", "CycleFault", "Fault", "LimitError", "Limits", "Pacer", "Recording", "RunOutcome", "RunPlan",
-           "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "plan_run", "run",
-           "run_channels", "run_preview", "sample_axis"]
+           "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "offset_profile", "plan_run",
+           "run", "run_channels", "run_preview", "sample_axis", "trace_header"]

@@ -63,8 +63,9 @@ DEFAULT_AMPLITUDE_RATED = 0.5
 #: the response is not the linear one (rigid-x, measured: 2x Coulomb reads 5-20 dB under the model,
 #: 6x within 1 dB from 20 Hz up, 5 dB low at 10 Hz where the loop holds the axis near rest)
 COULOMB_MULTIPLE = 6.0
-#: ... and at most this fraction of max_effort
-MAX_DEFAULT_FRACTION = 0.25
+#: ... and at most this fraction of max_effort (the most --amplitude takes: a drive peak of 3x rated leaves
+#: 1.5x rated for the excitation)
+MAX_DEFAULT_FRACTION = 0.5
 #: the slow constant-velocity bias on an axis whose model has Coulomb friction (see the module doc): at
 #: most this fast (a slow feed) ...
 BIAS_MAX_M_S = 0.01
@@ -241,7 +242,7 @@ def measure_frf(
     model has Coulomb friction, 0: hold still)."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.servo import Channel, run_channels
-    from drivectl.machine.build import model_specs, open_machine, plant_specs
+    from drivectl.machine.build import machine_meta, model_specs, open_machine, plant_specs
 
     ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
     dt = cfg.cycle_s
@@ -285,8 +286,7 @@ def measure_frf(
     try:
         what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
         what += " + multisine on the effort"
-        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": what, "bus": machine.bus,
-                "config": cfg.source}
+        meta = machine_meta(cfg, machine, plants[axis_name], spec, what)
         res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
                            duration=(rows - 1) * dt)
     finally:

@@ -9,7 +9,9 @@ the loop's own missed cycles. Needs a kernel CAN interface: on this project's ma
 
     ../shared/vcan-vm/run -- .venv/bin/python bench/sync_jitter.py --cycle-s 0.01 [--json]
 
-(the loop runs 20-60x slower there than on a host: a 10 ms cycle; on a host with vcan0, 0.001).
+(the loop runs 20-60x slower there than on a host: a 10 ms cycle; on a host with vcan0, 0.001). ``--bare``: the
+SYNC alone (a Python thread sleeping to absolute deadlines against python-can's send_periodic), where the
+resident loop cannot run (its start bound is wall-clock).
 """
 
 from __future__ import annotations
@@ -88,6 +90,53 @@ def measure(channel: str, cycle_s: float, seconds: float, sync: str) -> dict:
             "loop_worst_late_ms": status.get("worst_late_ms")}
 
 
+def _stats(stamps: list[float], cycle_s: float) -> dict:
+    periods = np.diff(np.asarray(stamps))
+    dev = np.abs(periods - cycle_s) * 1e6
+    if not len(dev):
+        return {"periods": 0, "mean_period_us": None, "jitter_std_us": None, "jitter_p50_us": None,
+                "jitter_p99_us": None, "jitter_max_us": None}
+    return {"periods": int(len(periods)), "mean_period_us": float(np.mean(periods) * 1e6),
+            "jitter_std_us": float(np.std(periods * 1e6)), "jitter_p50_us": float(np.percentile(dev, 50)),
+            "jitter_p99_us": float(np.percentile(dev, 99)), "jitter_max_us": float(np.max(dev))}
+
+
+def measure_bare(channel: str, cycle_s: float, seconds: float, sync: str) -> dict:
+    """The SYNC alone, no drive and no resident loop: a Python thread sleeping to absolute deadlines
+    (``sync="loop"``, what a Python loop can do at best) or python-can's ``send_periodic`` (the kernel's
+    broadcast manager)."""
+    stamps: list[float] = []
+    stop = threading.Event()
+    rec = threading.Thread(target=_record, args=(channel, stop, stamps), daemon=True)
+    rec.start()
+    time.sleep(0.2)
+    bus = can.Bus(interface="socketcan", channel=channel)
+    msg = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+    try:
+        if sync == "loop":
+            end = time.monotonic() + seconds
+            t = time.monotonic()
+            while t < end:
+                bus.send(msg)
+                t += cycle_s
+                delay = t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            source = "python"
+        else:
+            task = bus.send_periodic(msg, cycle_s)
+            time.sleep(seconds)
+            task.stop()
+            source = type(task).__name__
+    finally:
+        time.sleep(0.2)
+        stop.set()
+        rec.join(2)
+        bus.shutdown()
+    return {"sync": sync, "sent_by": source, "note": "bare: no drive, no resident loop", **_stats(stamps, cycle_s),
+            "loop_missed": None, "loop_cycles": None, "loop_worst_late_ms": None}
+
+
 def _host() -> str:
     """The kernel, and the machine's vendor where it says it is a VM (figures from a software-emulated CPU are
     no host's figures)."""
@@ -103,10 +152,14 @@ def main() -> None:
     ap.add_argument("--channel", default=os.environ.get("DRIVECTL_SOCKETCAN", "vcan0"))
     ap.add_argument("--cycle-s", type=float, default=0.001)
     ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--bare", action="store_true",
+                    help="the SYNC alone: a Python thread against send_periodic, no drive and no resident loop")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    rows = [measure(args.channel, args.cycle_s, args.seconds, s) for s in ("loop", "auto")]
+    how = measure_bare if args.bare else measure
+    rows = [how(args.channel, args.cycle_s, args.seconds, s) for s in ("loop", "auto")]
     out = {"cycle_s": args.cycle_s, "seconds": args.seconds, "load": os.getloadavg()[0], "host": _host(),
+           "bare": args.bare,
            "loop": rows[0], "transport": rows[1]}
     if args.json:
         print(json.dumps(out))

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from drivectl.controllers.runtime.approach import REFERENCE_TOLERANCE_M, needs_approach
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, CaptureError, Trigger
 from drivectl.controllers.runtime.handles import MoveStatus
 from drivectl.controllers.runtime.interrupt import stop_on_signals
@@ -48,6 +49,7 @@ from drivectl.controllers.runtime.loop import (
     drive_error,
 )
 from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
+from drivectl.controllers.runtime.recording import trace_header
 from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
 from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
@@ -212,11 +214,7 @@ class AxisControl:
     def _check_target(self, what: str, target: float) -> None:
         if not math.isfinite(target):
             raise LimitError(f"axis {self.name}: {what}: target must be a finite number of m, got {target!r}")
-        lim = self._rt.ch.limits
-        if lim.position is not None and not lim.position[0] <= target <= lim.position[1]:
-            origin = f" ({lim.position_source})" if lim.position_source else ""
-            raise LimitError(f"axis {self.name}: {what}: {target:.6f} m is outside the soft limits "
-                             f"[{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; nothing moved")
+        self._rt.ch.limits.refuse_outside(f"axis {self.name}: {what}", target)
 
     def _plan(self, target: float, speed: float | None) -> tuple[float, Any] | None:
         """The controller's preview of a move to ``target`` from where the reference rests now, computed
@@ -359,14 +357,7 @@ class AxisControl:
         offset = here - start if relative else 0.0
         if offset:
             samples[0] = samples[0] + offset
-        lim = rt.ch.limits
-        if lim.position is not None:
-            lo, hi = float(np.min(samples[0])), float(np.max(samples[0]))
-            if lo < lim.position[0] or hi > lim.position[1]:
-                origin = f" ({lim.position_source})" if lim.position_source else ""
-                raise LimitError(f"axis {self.name}: run {profile_name(profile)}: spans [{lo:.6f}, {hi:.6f}] m, "
-                                 f"outside the soft limits [{lim.position[0]:g}, {lim.position[1]:g}] m{origin}; "
-                                 "nothing moved")
+        rt.ch.limits.refuse_outside(f"axis {self.name}: run {profile_name(profile)}", samples[0], t)
         m = rt.motion  # a profile is not generated here, but it moves the axis: the same bounds hold
         for what, arr, bound, key in (("velocity", samples[1], m.max_velocity, "max_velocity_m_s"),
                                       ("acceleration", samples[2], m.max_acceleration, "max_acceleration_m_s2")):
@@ -374,7 +365,7 @@ class AxisControl:
             if peak > bound * (1 + 1e-9) + 1e-12:
                 raise LimitError(f"axis {self.name}: run {profile_name(profile)}: {what} {peak:g} exceeds the axis's "
                                  f"{key} {bound:g} ([axes.{self.name}.motion]); nothing moved")
-        far = abs(start + offset - here) > 1e-6
+        far = needs_approach(here, start + offset, REFERENCE_TOLERANCE_M)
         if far and not approach:
             raise LimitError(f"axis {self.name}: run {profile_name(profile)}: the axis stands at {here:.6f} m, the "
                              f"profile starts at {start:.6f} m (approach=True moves it there first, relative=True "
@@ -390,10 +381,7 @@ class AxisControl:
         if record is not None:
             from drivectl.tracefile.stream import TraceWriter
 
-            ax = rt.ch.axis
-            head = {"axis": self.name, "effort_unit": ax.effort_unit, "dt_s": format_value(loop.dt),
-                    **{k: format_value(v) for k, v in rt.ch.controller.describe().items()}, **meta,
-                    "bus": self._m.bus, "clock": loop.clock}
+            head = self._header(meta)
             handle._writer = TraceWriter(record, self.name, columns=("time_s", "ref_m", "pos_m", "effort", "vel_m_s"),
                                          meta=head).start()
             run.append = handle._writer.append
@@ -408,7 +396,7 @@ class AxisControl:
             rt.handle = handle
             handle.status = MoveStatus.MOVING
             rt.move_started = True
-            handle._run_meta = meta  # type: ignore[attr-defined]
+            handle._run_meta = meta
             handle._trace_fn = self.run_trace
 
         if far:
@@ -419,19 +407,21 @@ class AxisControl:
             loop.submit(begin)
         return handle
 
+    def _header(self, meta: dict[str, str] | None = None, controller: bool = True) -> dict[str, str]:
+        """This axis's trace header (controllers/runtime/recording.py ``trace_header``): ``meta`` and the bus."""
+        loop = self._m.loop
+        return trace_header(self._rt.ch.axis, loop.dt, self._rt.ch.controller if controller else None,
+                            {**(meta or {}), "bus": self._m.bus}, paced=loop.clock == "wall")
+
     def run_trace(self, handle: Move) -> Trace:
         """The record of a finished run (trace v1: time_s, ref_m, pos_m, effort, vel_m_s)."""
         run = handle._run
         if not isinstance(run, ProfileRun):
             raise ValueError(f"axis {self.name}: {handle.kind} has no run record")
         n = run.k
-        ax = self._rt.ch.axis
         cols = {"time_s": np.arange(n) * self._m.loop.dt, "ref_m": np.asarray(run.refs[0][:n]),
                 "pos_m": run.rec[0, :n], "effort": run.rec[2, :n], "vel_m_s": run.rec[1, :n]}
-        meta = {"axis": self.name, "effort_unit": ax.effort_unit, "dt_s": format_value(self._m.loop.dt),
-                **{k: format_value(v) for k, v in self._rt.ch.controller.describe().items()},
-                **getattr(handle, "_run_meta", {}), "cycles": str(n), "stop": handle.status,
-                "bus": self._m.bus, "clock": self._m.loop.clock}
+        meta = {**self._header(handle._run_meta), "cycles": str(n), "stop": handle.status}
         if handle.detail:
             meta["stop_detail"] = handle.detail
         return Trace(cols, meta)
@@ -484,8 +474,7 @@ class AxisControl:
         if pre_n + 1 + post_n > ring:
             raise CaptureError(f"capture: pre + post = {pre + post:g} s is longer than the ring "
                                f"({ring * loop.dt:g} s; connect(ring_s=...))")
-        meta = {"effort_unit": self._rt.ch.axis.effort_unit, "bus": self._m.bus, "clock": loop.clock}
-        cap = Capture(self.name, tuple(channels), trig, pre_n, post_n, loop.dt, meta)
+        cap = Capture(self.name, tuple(channels), trig, pre_n, post_n, loop.dt, self._header(controller=False))
         cap.run_until = self._m.run_until
         cap.plot_apart = loop.clock == "wall"
         loop.submit(lambda: self._rt.captures.append(cap))

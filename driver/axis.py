@@ -7,7 +7,7 @@ per-mille exist only inside the transports.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
@@ -129,6 +129,13 @@ class Axis:
     state_source: str = ""
     #: a rogue producer or a foreign NMT command seen on this drive (FaultKind), else None
     foreign_kind: FaultKind | None = None
+    #: what the boot chose and what the drive lacks, a line each (said when a run starts); none without a drive
+    boot_notes: Sequence[str] = ()
+
+    def enable_blocker(self) -> str:
+        """Why the drive is not Operation Enabled, in the drive's own words (driver/enable_check.py); "" where
+        nothing more is known than ``power``."""
+        return ""
 
     def refresh_state(self) -> PowerState:
         """The power state asked of the drive again (by SDO on a bus); without a transport, ``power``."""

@@ -125,7 +125,7 @@ class AxisBoot:
 
     def _sdo(self, index: int, sub: int | None = None, value: int | None = None) -> int:
         what = f"0x{index:04X}" + (f":{sub}" if sub is not None else "")
-        if getattr(self, "_awaiting_boot", False):
+        if self._awaiting_boot:
             # a reset we saw another master send: the drive answers once it has booted (tens of ms)
             for _ in range(round(self.timeout / self.dt)):
                 if not self._awaiting_boot:

@@ -37,7 +37,7 @@ class AxisStop:
         """The statusword by SDO; if the drive is NMT Stopped and does not answer, NMT Pre-operational
         first (SDO works there, PDOs still do not). Known Stopped (by our NMT Stop or its heartbeat): Pre-operational
         at once (a conforming drive answers no SDO in Stopped, CiA 301; waiting for the SDO timeout costs 0.6 s)."""
-        if getattr(self, "_sent_stop", False):
+        if self._sent_stop:
             self._sent_stop = False
             self._nmt_own = True
             self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))

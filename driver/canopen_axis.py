@@ -166,6 +166,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self.rated_effort_source = rated_effort_source
         self.sdo_init = tuple(sdo_init)
         self.boot_notes: list[str] = []  # what the boot chose and what the drive lacks (said at boot)
+        self.mode: int | None = None  # the mode of operation the boot chose (driver/axis_boot.py)
+        self._awaiting_boot = False  # a reset another master sent: SDO waits for the boot-up
+        self._sent_stop = False  # our NMT Stop is out: the state is asked after Pre-operational
         self.od = od
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
@@ -493,7 +496,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             return f"node {self.node_id}: no statusword by SDO (the drive does not answer)"
         return enable_blocker(sw, error_code=read(cia402.ERROR_CODE),
                               emcy_code=self.last_emcy[0] if self.last_emcy else None,
-                              mode_display=read(cia402.MODES_OF_OPERATION_DISPLAY), mode=getattr(self, "mode", None))
+                              mode_display=read(cia402.MODES_OF_OPERATION_DISPLAY), mode=self.mode)
 
     def read_digital_inputs(self) -> int:
         """0x60FD by SDO (the drive's switches; homing reads them)."""

@@ -46,7 +46,8 @@ def drive_lines(axis: CanopenAxis) -> list[tuple[str, str]]:
     modes = _read(axis, cia402.SUPPORTED_DRIVE_MODES)
     out.append(("0x6502", f"0x{modes:08X} (read from the device)" if modes is not None else
                 f"not readable; {axis.capabilities.modes_source}: 0x{axis.capabilities.modes:08X}"))
-    out.append(("mode", MODE_NAMES.get(getattr(axis, "mode", 0), str(getattr(axis, "mode", "?")))))
+    mode = axis.mode if axis.mode is not None else 0
+    out.append(("mode", MODE_NAMES.get(mode, str(mode))))
     for line in axis.pdo_plan.lines():
         out.append(("mapping", line))
     hb = _read(axis, cia402.PRODUCER_HEARTBEAT_TIME)

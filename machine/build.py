@@ -87,6 +87,20 @@ class Machine:
         self.close()
 
 
+def machine_meta(cfg: MachineConfig, machine: Machine, plant: PlantSpec, model: PlantSpec, profile: str,
+                 effects: Sequence[tuple[str, Mapping[str, float]]] = (),
+                 faults: Sequence[object] = ()) -> dict[str, str]:
+    """The machine's part of an axis's trace header (the rest: controllers/runtime/recording.py
+    ``trace_header``): the plant emulated, the model the controller was designed on, the profile, the bus,
+    the configuration file, and the effects added and faults injected, where there are any."""
+    meta = {"plant": plant.name, "model": model.name, "profile": profile, "bus": machine.bus, "config": cfg.source}
+    if effects:
+        meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
+    if faults:
+        meta["injected"] = "; ".join(str(f) for f in faults)
+    return meta
+
+
 def plant_specs(cfg: MachineConfig, names: Sequence[str], plant: str | None = None,
                 effects: Sequence[tuple[str, dict[str, float]]] = ()) -> dict[str, PlantSpec]:
     specs = {}

@@ -125,6 +125,32 @@ def profile_name(profile: Profile) -> str:
 LIMIT_TOLERANCE = 1e-9
 
 
+def outside_soft_limits(position: tuple[float, float], values: object, times: object = None) -> str | None:
+    """The soft-limit test of every refusal (a profile, a run, a move's target) and its one line.
+
+    ``values``: positions (m; one or many), sampled at ``times`` (s) when given. None when every value
+    lies within ``position`` = (lower, upper) give or take :data:`LIMIT_TOLERANCE`; else the first one
+    outside, e.g. "position 0.040000 m at t=0.000 s is outside the soft limits [-0.03, 0.03] m" (the
+    caller says whose and prefixes it: controllers/runtime/cycle.py ``Limits.refuse_outside``)."""
+    p = np.atleast_1d(np.asarray(values, dtype=float))
+    i = first_outside(position, p)
+    if i is None:
+        return None
+    at = "" if times is None else f" at t={float(np.atleast_1d(times)[i]):.3f} s"
+    return soft_limit_text(float(p[i]), position, at)
+
+
+def first_outside(position: tuple[float, float], values: np.ndarray) -> int | None:
+    """The index of the first of ``values`` outside ``position`` (beyond :data:`LIMIT_TOLERANCE`), or None."""
+    bad = (values < position[0] - LIMIT_TOLERANCE) | (values > position[1] + LIMIT_TOLERANCE)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def soft_limit_text(value: float, position: tuple[float, float], at: str = "") -> str:
+    """The words of a position outside the soft limits (a refusal's, and the cycle's when it stops a run)."""
+    return f"position {value:.6f} m{at} is outside the soft limits [{position[0]:g}, {position[1]:g}] m"
+
+
 def check_limits(
     profile: Profile,
     *,
@@ -139,7 +165,7 @@ def check_limits(
     The profile is sampled at ``rate`` Hz (at least 1 kHz) from t = 0 to ``until`` (default its
     ``duration``; pass the run length when the servo runs longer, e.g. a circle continuing), endpoints
     included. Raises ProfileError naming the earliest violation and its time, e.g.
-    "profile circle: position 0.0400 m at t=0.000 s outside soft limits [-0.03, 0.03] m".
+    "profile circle: position 0.040000 m at t=0.000 s is outside the soft limits [-0.03, 0.03] m".
     A tolerance of 1e-9 (in the SI unit of each quantity) absorbs rounding.
     """
     name = profile_name(profile)
@@ -164,13 +190,8 @@ def check_limits(
 
     # (index of first violation, message builder); the earliest in time wins, position first on a tie.
     found: list[tuple[int, str]] = []
-    if position is not None:
-        lo, hi = position
-        bad = (pos < lo - tol) | (pos > hi + tol)
-        if bad.any():
-            i = int(np.argmax(bad))
-            where = f"at t={t[i]:.3f} s outside soft limits [{lo:g}, {hi:g}] m"
-            found.append((i, f"position {pos[i]:.4f} m {where}"))
+    if position is not None and (i := first_outside(position, pos)) is not None:
+        found.append((i, soft_limit_text(float(pos[i]), position, f" at t={t[i]:.3f} s")))
     if vmax is not None:
         bad = np.abs(vel) > vmax + tol
         if bad.any():

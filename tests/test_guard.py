@@ -16,6 +16,7 @@ from drivectl.controllers.registry import make_controller
 from drivectl.controllers.runtime.run_checks import Assessment, JumpState, RunChecks, assess, position_jump
 from drivectl.controllers.runtime.safe_stop import MAY_BE_POWERED, stop_axes
 from drivectl.controllers.runtime.servo import SAFE_STATES, Channel, run_channels
+from drivectl.driver.axis import Axis
 from drivectl.driver.cia301 import SYNC_COB_ID
 from drivectl.driver.cia402 import PowerState
 from drivectl.driver.network import close_threaded, open_bus, threaded_network, unique_virtual_channel
@@ -99,7 +100,7 @@ def test_foreign_nmt_seen_only_in_the_drives_heartbeat_is_a_fault():
         axis.read()  # raised once: the stop that follows can still cycle
 
 
-class _Stubborn:
+class _Stubborn(Axis):
     """An axis that reports, by fresh TPDOs, Operation Enabled whatever it is told (a drive a rogue
     controls and no NMT reaches)."""
 

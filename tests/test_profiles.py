@@ -280,7 +280,7 @@ def test_check_limits_names_first_violation() -> None:
     with pytest.raises(ProfileError) as exc:
         check_limits(Circle("x"), position=(-0.03, 0.03))
     assert str(exc.value) == (
-        "profile circle: position 0.0400 m at t=0.000 s outside soft limits [-0.03, 0.03] m"
+        "profile circle: position 0.040000 m at t=0.000 s is outside the soft limits [-0.03, 0.03] m"
     )
     with pytest.raises(ProfileError) as exc:
         check_limits(seed000(), vmax=0.05)
@@ -310,7 +310,7 @@ def test_check_limits_catches_a_brief_excursion() -> None:
     blip = Sequence([Dwell(0.0, 0.5), PointToPoint(0.0, 0.001, 1.0, 10.0, 1e5),
                      PointToPoint(0.001, 0.0, 1.0, 10.0, 1e5)])
     check_limits(blip, position=(-1.0, 0.002))
-    with pytest.raises(ProfileError, match="outside soft limits"):
+    with pytest.raises(ProfileError, match="outside the soft limits"):
         check_limits(blip, position=(-1.0, 0.0009))
 
 

@@ -9,6 +9,7 @@ from helpers import SimWallClock
 from drivectl.controllers.registry import make_controller
 from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.servo import Channel, Pacer, StopReason, run_channels
+from drivectl.driver.axis import Axis
 from drivectl.machine.build import open_machine
 from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 from drivectl.profiles.library import load_profile
@@ -16,7 +17,7 @@ from drivectl.tools.cli.main import main
 from drivectl.tracefile.format import Trace
 
 
-class _Axis:
+class _Axis(Axis):
     def __init__(self, name: str, lost: int | None = None) -> None:
         self.name = name
         if lost is not None:

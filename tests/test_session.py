@@ -359,10 +359,11 @@ def test_homing_switch_not_found_is_one_error(tmp_path):
 
 def test_approach_plans_a_visible_move_to_the_profile_start_and_the_run_follows():
     from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.approach import plan_approach, where_axes_stand
     from drivectl.controllers.runtime.servo import Channel, plan_run, run_channels
     from drivectl.plant_emulator.models import load_plant
     from drivectl.plant_emulator.sim_axis import SimAxis
-    from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand
+    from drivectl.tools.cli.approach import consent
 
     cfg = config()
     spec = load_plant("rigid-x")

@@ -225,7 +225,7 @@ def test_summary_of_a_trace():
 # -- servo loop safety ---------------------------------------------------------------------------------
 def test_profile_outside_soft_limits_is_refused_before_moving():
     axis = _axis()
-    with pytest.raises(LimitError, match="outside soft limits"):
+    with pytest.raises(LimitError, match="outside the soft limits"):
         run(axis, PdController(DT), SineProfile(0.02, 1.0, 1.0), limits=Limits(position=(-0.01, 0.01)))
     assert axis.state.s == [0.0, 0.0] and axis.power is PowerState.SWITCH_ON_DISABLED
 

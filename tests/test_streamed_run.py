@@ -105,5 +105,5 @@ def test_a_streamed_run_has_no_one_hour_cap_and_its_limit_check_is_windowed():
             p, v, a, j = super().sample(t)
             return np.where(np.asarray(t) >= 700.0, 0.5, p), v, a, j
 
-    with pytest.raises(LimitError, match=r"position 0.5000 m at t=700.000 s outside soft limits"):
+    with pytest.raises(LimitError, match=r"position 0.500000 m at t=700.000 s is outside the soft limits"):
         plan_run([channel(LeavesAt700(0.01, 0.5, 1000.0))], keep=False)  # in the second window

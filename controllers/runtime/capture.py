@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from drivectl.errors import InputError
-from drivectl.tracefile.format import Trace, format_value
+from drivectl.tracefile.format import Trace
 
 CHANNELS = ("reference", "position", "following_error", "effort", "velocity", "torque", "statusword")
 #: channel -> trace column
@@ -217,8 +217,7 @@ class Capture:
             cols = {"time_s": t, "ref_m": data[0], "pos_m": data[1], "effort": data[3]}
             for name in self.channels:
                 cols.setdefault(COLUMNS[name], data[CHANNELS.index(name)])
-            meta = {**self.meta, "axis": self.axis, "dt_s": format_value(self.dt),
-                    "capture_trigger": self._trigger_text(), "capture_pre_samples": str(self.pre),
+            meta = {**self.meta, "capture_trigger": self._trigger_text(), "capture_pre_samples": str(self.pre),
                     "capture_post_samples": str(self.post), "cycles": str(len(t))}
             if self.detail:
                 meta["capture_detail"] = self.detail

@@ -19,7 +19,8 @@ from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
-from drivectl.profiles.base import Profile, Reference
+from drivectl.errors import InputError
+from drivectl.profiles.base import Profile, Reference, outside_soft_limits, soft_limit_text
 
 
 class StopReason(Enum):
@@ -30,6 +31,10 @@ class StopReason(Enum):
     FAULT = "fault"
     AXIS_ERROR = "axis error"
 
+
+
+class LimitError(InputError):
+    """A run or a move was refused before anything moved (outside the limits, the axis not at the start)."""
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,21 @@ class Limits(Settings):
                             "this is an encoder glitch (controllers/runtime/run_checks.py)")
     #: where the soft limits come from (a configuration key, a drive object), named when a profile leaves them
     position_source: str | None = field(default=None, compare=False)
+
+    def inside(self, position: float) -> bool:
+        """``position`` (m) lies within the soft limits (always, without them)."""
+        return self.position is None or outside_soft_limits(self.position, position) is None
+
+    def refuse_outside(self, who: str, positions: object, times: object = None) -> None:
+        """The soft-limit refusal, for every caller (a move's target, a run, a profile): LimitError, one line
+        naming ``who`` ("axis x: move_to"), the first of ``positions`` (m; at ``times`` s) outside the soft
+        limits, and where the limits come from; nothing has moved. Nothing without soft limits."""
+        if self.position is None:
+            return
+        outside = outside_soft_limits(self.position, positions, times)
+        if outside is not None:
+            origin = f" ({self.position_source})" if self.position_source else ""
+            raise LimitError(f"{who}: {outside}{origin}; nothing moved")
 
     def validate(self, source: str = "limits", prefix: str = "") -> None:
         if self.position is not None and not self.position[0] < self.position[1]:
@@ -176,9 +196,9 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
             f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
             "violent oscillation)")
-    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):
+    if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):  # inline: every cycle
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
-            f"axis {name}: position {pos:.6f} m outside soft limits at t={k * dt:.3f} s")
+            f"axis {name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
     err = ref - pos
     if err > lim.following_error or err < -lim.following_error:
         since = ch.following_since

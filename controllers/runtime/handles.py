@@ -65,6 +65,7 @@ class Move:
         self.cycles = 0
         self._run: ProfileRun | None = None  # a run's record, once it ended
         self._trace_fn: Callable[[Move], Any] | None = None
+        self._run_meta: dict[str, str] = {}  # a run's own metadata (profile, offset) for its trace
         self._trace: Any = None
         self._writer: Any = None  # a streamed run's TraceWriter, closed by wait()
         self.path: Path | None = None  # where a streamed run's trace was written

@@ -278,7 +278,7 @@ def _home_switch(machine: Any, axis: Any, cfg: HomingConfig) -> None:
         machine.run_until(lambda: True, None)
     finally:
         _restore(machine, axis, old)
-    axis.move_to(cfg.position).wait(10) if _inside(axis, cfg.position) else None
+    axis.move_to(cfg.position).wait(10) if axis.limits.inside(cfg.position) else None
 
 
 def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
@@ -313,6 +313,3 @@ def _home_hard_stop(machine: Any, axis: Any, cfg: HomingConfig) -> None:
     axis.move_to(cfg.position - cfg.direction * cfg.backoff).wait(10)
 
 
-def _inside(axis: Any, position: float) -> bool:
-    lim = axis._rt.ch.limits.position
-    return lim is None or lim[0] <= position <= lim[1]

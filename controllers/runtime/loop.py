@@ -71,7 +71,7 @@ from drivectl.controllers.runtime.host import (
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
 from drivectl.controllers.runtime.safe_stop import drive_error_code, quietly, stop_channels
-from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES
+from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES, trace_header
 from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
@@ -467,10 +467,10 @@ class ServoLoop:
                 continue
             last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
             armed = [c for c in rt.captures if c.trigger.kind == "fault"]
-            if not armed and self.fault_dir is not None:
-                # nobody asked, and the last seconds go to disk all the same: the whole ring
+            if not armed and self.fault_dir is not None:  # nobody asked: the whole ring goes to disk all the same
+                head = trace_header(rt.ch.axis, self.dt, None, self.meta.get(rt.name), paced=self.clock == "wall")
                 armed = [Capture(rt.name, CHANNELS, Trigger("fault"), min(rt.ring.count, rt.ring.size) - 1, 0,
-                                 self.dt, {"effort_unit": rt.ch.axis.effort_unit, **self.meta.get(rt.name, {})})]
+                                 self.dt, head)]
                 rt.captures.extend(armed)
             for cap in armed:
                 if cap.post:  # the stop and what follows it come as the post-trigger samples

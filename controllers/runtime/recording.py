@@ -7,19 +7,36 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from drivectl.controllers.runtime.cycle import Channel, Fault, StopReason
-from drivectl.driver.axis import Feedback
+from drivectl.controllers.base import Controller
+from drivectl.controllers.runtime.cycle import Fault, StopReason
+from drivectl.driver.axis import Axis, Feedback
 from drivectl.tracefile.format import Trace, format_value
 
 if TYPE_CHECKING:
     from drivectl.controllers.runtime.pacing import Pacer
     from drivectl.controllers.runtime.servo import RunOutcome, RunPlan
+
+
+def trace_header(axis: Axis, dt: float, controller: Controller | None = None, meta: Mapping[str, object] | None = None,
+                 *, paced: bool = False) -> dict[str, str]:
+    """The metadata a trace v1 starts with (docs/trace-format.md), the same lines in the same order for
+    every trace drivectl writes (a run, a session's run, a capture, a fault's ring): the axis, its effort
+    unit, the cycle time, the controller's settings (``describe()``), what the caller knows (the machine's
+    part: plant, model, profile, bus, configuration, effects, injected faults, from
+    machine/build.py ``machine_meta``; a session run's profile and offset), and the clock."""
+    head = {"axis": axis.name, "effort_unit": axis.effort_unit, "dt_s": format_value(dt)}
+    if controller is not None:
+        head.update((k, format_value(v)) for k, v in controller.describe().items())
+    head.update((k, format_value(v)) for k, v in (meta or {}).items())
+    head["clock"] = "wall clock, paced" if paced else "lockstep"
+    return head
 
 
 @dataclass
@@ -65,7 +82,7 @@ class Recording:
         self._cols = [{k: np.zeros(n) for k in ("ref_m", "pos_m", "effort", "vel_m_s")} for _ in plan.channels]
         self._rows = [(c["ref_m"], c["pos_m"], c["vel_m_s"], c["effort"]) for c in self._cols] if plan.keep else None
         self._counters0 = [dict(ch.axis.counters) for ch in plan.channels]
-        self._head = [self._head_meta(ch, paced) for ch in plan.channels]
+        self._head = [trace_header(ch.axis, plan.dt, ch.controller, ch.meta, paced=paced) for ch in plan.channels]
         self.writers: list = []
         if stream is not None:
             from drivectl.tracefile.stream import TraceWriter
@@ -73,7 +90,7 @@ class Recording:
             # in lockstep (nothing runs on a wall clock beside the loop) the loop writes its own full blocks:
             # no writer thread taking the GIL mid-cycle. Paced, or with drives in another process (their
             # RPDO deadline is on the wall clock), the thread formats them and the loop never waits.
-            inline = not paced and all(getattr(ch.axis, "lockstep", True) for ch in plan.channels)
+            inline = not paced and all(ch.axis.lockstep for ch in plan.channels)
             try:
                 for ch, head in zip(plan.channels, self._head, strict=True):
                     self.writers.append(TraceWriter(stream, ch.axis.name, columns=self.COLUMNS, meta=head,
@@ -82,17 +99,6 @@ class Recording:
                 self.abandon()
                 raise
         self._append = [w.append for w in self.writers] if self.writers else None
-
-    def _head_meta(self, ch: Channel, paced: bool) -> dict[str, str]:
-        """What is known before the run: the header of a streamed trace."""
-        return {
-            "axis": ch.axis.name,
-            "effort_unit": ch.axis.effort_unit,
-            "dt_s": format_value(self.plan.dt),
-            **{k: format_value(v) for k, v in ch.controller.describe().items()},
-            **{k: format_value(v) for k, v in ch.meta.items()},
-            "clock": "wall clock, paced" if paced else "lockstep",
-        }
 
     def record(self, i: int, k: int, fb: Feedback, u: float, ref: float) -> None:
         if self._rows is not None:

@@ -92,7 +92,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: s
     mark(0)
     # what the master knows does not reach the drive by RPDO: escalate these at once
     for ax in axes:
-        kind = getattr(ax, "foreign_kind", None)  # declared on Axis; getattr: duck-typed stand-ins (tests) lack it
+        kind = ax.foreign_kind
         if kind is None and ax.name == fault_axis and fault_kind in (FaultKind.ROGUE_RPDO.value,
                                                                      FaultKind.FOREIGN_NMT.value):
             kind = FaultKind(fault_kind)

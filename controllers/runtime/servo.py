@@ -19,7 +19,6 @@ three) are counted, and the fault (kind, cycle, statusword, 0x603F text) goes in
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from drivectl.controllers.runtime.cycle import (
     Channel,
     CycleFault,
     Fault,
+    LimitError,
     Limits,
     StopReason,
     check_and_write,
@@ -41,18 +41,12 @@ from drivectl.controllers.runtime.cycle import (
 )
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
-from drivectl.controllers.runtime.recording import Recording, RunResult
+from drivectl.controllers.runtime.recording import Recording, RunResult, trace_header
 from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.safe_stop import stop_channels
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState
-from drivectl.errors import InputError
-from drivectl.profiles.base import Profile, ProfileError, Reference, check_limits, profile_name
-
-
-class LimitError(InputError):
-    """A run was refused before anything moved (profile outside limits, axis not at the start)."""
-
+from drivectl.profiles.base import Profile, Reference, profile_name
 
 #: the most cycles a run records in memory (``keep=True``: 32 bytes per cycle and axis), one hour at 1 kHz
 MAX_RUN_CYCLES = 3_600_000
@@ -335,44 +329,27 @@ class _Interrupted(Exception):
 
 
 def _check_profile(ch: Channel, until: float) -> None:
-    """Refuse a profile that leaves the soft limits anywhere in the run (before anything moves)."""
+    """Refuse a profile that leaves the soft limits anywhere in the run (before anything moves), sampled
+    at :data:`CHECK_RATE_HZ` a window at a time: the check's memory does not grow with the run's length."""
     lim = ch.limits
     if lim.position is not None:
-        try:
-            t0 = 0.0
-            while True:  # a window at a time: the check's memory does not grow with the run's length
-                span = min(until - t0, CHECK_WINDOW_S)
-                profile = ch.profile if t0 == 0.0 else _Shifted(ch.profile, t0)
-                try:
-                    check_limits(profile, position=lim.position, until=span)
-                except ProfileError as exc:
-                    raise ProfileError(re.sub(r"at t=([0-9.]+) s", lambda m, t0=t0: f"at t={float(m[1]) + t0:.3f} s",
-                                              str(exc), count=1)) from None
-                t0 += span
-                if t0 >= until:
-                    break
-        except ProfileError as exc:
-            origin = f" ({lim.position_source})" if lim.position_source else ""
-            raise LimitError(f"axis {ch.axis.name}: {exc}{origin}; nothing moved") from None
+        source = getattr(ch.profile, "source", None)
+        who = f"axis {ch.axis.name}: profile {profile_name(ch.profile)}{f' ({source})' if source else ''}"
+        t0 = 0.0
+        while True:
+            span = min(until - t0, CHECK_WINDOW_S)
+            t = np.linspace(0.0, span, max(2, math.ceil(span * CHECK_RATE_HZ) + 1)) + t0
+            lim.refuse_outside(who, ch.profile.sample(t)[0], t)
+            t0 += span
+            if t0 >= until:
+                break
     ch.following_since = None
     ch.last_position = None
 
 
-#: the soft-limit check of a run samples this much of the profile at a time (s)
+#: the soft-limit check of a run samples this much of the profile at a time (s), at this rate (Hz)
 CHECK_WINDOW_S = 600.0
-
-
-class _Shifted:
-    """``profile`` seen from ``t0`` on (its name and file kept for the messages)."""
-
-    def __init__(self, profile: Profile, t0: float):
-        self._p, self._t0 = profile, t0
-        self.name = getattr(profile, "name", None) or profile_name(profile)
-        self.source = getattr(profile, "source", None)
-        self.duration = max(profile.duration - t0, 0.0)
-
-    def sample(self, t: np.ndarray):
-        return self._p.sample(np.asarray(t) + self._t0)
+CHECK_RATE_HZ = 2000.0
 
 
 def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
@@ -407,9 +384,8 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
-        late = [f"{ch.axis.name} ({ch.axis.power.value}"
-                + (f": {ch.axis.enable_blocker()}" if hasattr(ch.axis, "enable_blocker") else "") + ")"
-                for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
+        late = [f"{ch.axis.name} ({ch.axis.power.value}" + (f": {why}" if (why := ch.axis.enable_blocker()) else "")
+                + ")" for ch in channels if ch.axis.power is not PowerState.OPERATION_ENABLED]
         raise AxisError(f"axis {', '.join(late)}: not Operation Enabled after {cycles} cycles")
 
 
@@ -425,4 +401,4 @@ def _progress(n: int, enabled: bool):
 __all__ = ["CHECK_WINDOW_S", "MAX_RUN_CYCLES", "MAX_STREAMED_CYCLES", "REF_CHUNK", "SAFE_STATES", "STATE_CHANGE_CYCLES",
            "Channel", "CycleFault", "Fault", "LimitError", "Limits", "Pacer", "Recording", "RunOutcome", "RunPlan",
            "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "plan_run", "run",
-           "run_channels", "run_preview", "sample_axis"]
+           "run_channels", "run_preview", "sample_axis", "trace_header"]

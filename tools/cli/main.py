@@ -204,7 +204,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
 
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.servo import Channel, StopReason, check_run_length, run_channels
-    from drivectl.machine.build import axis_profile, model_specs, open_machine, plant_specs
+    from drivectl.machine.build import axis_profile, machine_meta, model_specs, open_machine, plant_specs
     from drivectl.machine.config import load_config
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultSpecError, parse_fault
@@ -272,12 +272,8 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     try:
         for name in names:
             ac = cfg.axis(name)
-            meta = {"plant": specs[name].name, "model": models[name].name, "profile": args.profile or ac.profile,
-                    "bus": machine.bus, "config": cfg.source}
-            if effects:
-                meta["effects"] = "; ".join(f"{n}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for n, p in effects)
-            if faults:
-                meta["injected"] = "; ".join(str(f) for f in faults)
+            profile = args.profile or ac.profile
+            meta = machine_meta(cfg, machine, specs[name], models[name], profile, effects, faults or ())
             axis = machine.axes[name]
             # limits the configuration leaves out come from the drive (0x6065/0x6066, 0x607D)
             limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
@@ -300,13 +296,14 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
             print(f"trace: axis {','.join(names)}, {cycles} cycles of {cfg.cycle_s * 1e3:g} ms on {bus_text}"
                   f"{load_text} (Ctrl-C stops safely)", file=sys.stderr, flush=True)
             for name in names:  # what the boot chose for each drive and what it does for what the drive lacks
-                for note in getattr(machine.axes[name], "boot_notes", ()):
+                for note in machine.axes[name].boot_notes:
                     print(f"{name}: {note}", file=sys.stderr)
 
+        from drivectl.controllers.runtime.approach import plan_approach, where_axes_stand
         from drivectl.controllers.runtime.servo import plan_run
-        from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand
+        from drivectl.tools.cli.approach import consent
 
-        # an axis away from its profile's start is moved there first, shown and agreed (tools/cli/approach.py)
+        # an axis away from its profile's start is moved there first, shown and agreed (controllers/runtime/approach.py)
         approach, moves = plan_approach(channels, where_axes_stand(channels), {n: cfg.axis(n).motion for n in names})
         if approach is not None:
             consent(args.approach, moves)

@@ -241,7 +241,7 @@ def measure_frf(
     model has Coulomb friction, 0: hold still)."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.servo import Channel, run_channels
-    from drivectl.machine.build import model_specs, open_machine, plant_specs
+    from drivectl.machine.build import machine_meta, model_specs, open_machine, plant_specs
 
     ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
     dt = cfg.cycle_s
@@ -285,8 +285,7 @@ def measure_frf(
     try:
         what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
         what += " + multisine on the effort"
-        meta = {"plant": plants[axis_name].name, "model": spec.name, "profile": what, "bus": machine.bus,
-                "config": cfg.source}
+        meta = machine_meta(cfg, machine, plants[axis_name], spec, what)
         res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
                            duration=(rows - 1) * dt)
     finally:

@@ -302,8 +302,8 @@ def cmd_power(args: argparse.Namespace) -> int:
             ax.read()
             ax.write(0.0)
         if ax.power is not want:
-            why = f": {ax.enable_blocker()}" if want is PowerState.OPERATION_ENABLED and hasattr(ax, "enable_blocker") \
-                else ""
+            blocker = ax.enable_blocker() if want is PowerState.OPERATION_ENABLED else ""
+            why = f": {blocker}" if blocker else ""
             print(f"drivectl: axis {args.axis}: still {ax.power.value} after {STATE_CHANGE_CYCLES} cycles "
                   f"(wanted {want.value}){why}", file=sys.stderr)
             return 1
@@ -318,7 +318,7 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None =
                   noise: float = 0.0, approach: bool | None = None) -> dict[str, Any]:
     """Run the identification on axis ``name`` of ``cfg`` (emulated drive on the bus, or SimAxis);
     returns the identified parameters (keys of IDENTIFY_KEYS) and the model's, SI. An axis that is not
-    at the identification profile's start is moved there first (tools/cli/approach.py; ``approach``: the
+    at the identification profile's start is moved there first (controllers/runtime/approach.py; ``approach``: the
     ``--approach`` / ``--no-approach`` choice)."""
     from drivectl.controllers.pid import PidDob
     from drivectl.machine.build import model_specs, open_machine, plant_specs
@@ -339,9 +339,10 @@ def identify_axis(cfg: Any, name: str, *, sim: bool = False, model: str | None =
         return m.axes[name]
 
     def _approach(axis: Any, start: float) -> None:
+        from drivectl.controllers.runtime.approach import plan_approach, where_axes_stand
         from drivectl.controllers.runtime.servo import Channel, LimitError, run_channels
         from drivectl.profiles.dwell import Dwell
-        from drivectl.tools.cli.approach import consent, plan_approach, where_axes_stand
+        from drivectl.tools.cli.approach import consent
 
         ac = cfg.axis(name)
         ch = Channel(axis, controller_factory(cfg.cycle_s), Dwell(start, 1.0), ac.limits, {})

@@ -487,7 +487,7 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
     """``trace --repeat N [--learn] [--learned FILE]``: one continuous run of N repetitions with return
     moves between them; returns the exit code (as plain ``trace``)."""
     from drivectl.controllers.runtime.servo import Channel, StopReason, run_channels
-    from drivectl.machine.build import open_machine
+    from drivectl.machine.build import machine_meta, open_machine
     from drivectl.tracefile.format import Trace
 
     reps, cycles, refs = plan.repeat, plan.cycles, plan.refs
@@ -537,10 +537,7 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
         channels = []
         for n in names:
             ac = cfg.axis(n)
-            meta = {"plant": specs[n].name, "model": models[n].name, "profile": profile_names[n],
-                    "bus": machine.bus, "config": cfg.source}
-            if effects:
-                meta["effects"] = "; ".join(f"{e}:{','.join(f'{k}={v:g}' for k, v in p.items())}" for e, p in effects)
+            meta = machine_meta(cfg, machine, specs[n], models[n], profile_names[n], effects)
             axis = machine.axes[n]
             limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, wrappers[n], schedules[n], limits, meta))

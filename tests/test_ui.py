@@ -66,6 +66,28 @@ def test_drivectl_ui_serves_with_a_token_on_loopback_and_a_signal_disables_every
     assert "closed: x Switch On Disabled" in err  # as the drive reported it after the disable
 
 
+def test_the_pages_quit_disables_every_axis_and_ends_the_console(tmp_path):
+    import json
+
+    from websockets.sync.client import connect as ws_connect
+
+    proc, url = start_ui(tmp_path, "--axis", "x")
+    try:
+        base, token = url.split("/?")[0], url.split("token=")[1]
+        with ws_connect(base.replace("http", "ws") + f"/ws?token={token}") as ws:
+            for rid, op in ((1, "enable"), (2, "quit")):
+                ws.send(json.dumps({"id": rid, "op": op, "axis": "x"}))
+                while (msg := json.loads(ws.recv(timeout=60)))["type"] != "reply":
+                    pass
+                assert msg["ok"], msg
+        _out, err = proc.communicate(timeout=60)  # the page's Quit ends it: no signal sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "closed: x Switch On Disabled" in err
+
+
 def test_listen_beyond_loopback_warns_and_a_bad_address_is_refused(tmp_path):
     proc, url = start_ui(tmp_path, "--axis", "x", "--listen", "0.0.0.0")
     try:

@@ -95,6 +95,15 @@ def arm(driver, trigger, pre, post, **level):
     tid(driver, "scope-arm").click()
 
 
+def choose(driver, testid, value):
+    """Select ``value`` in a select the page may be filling again (the trace list loads on each tab
+    click): set in one script, once the option is there, so no option element goes stale."""
+    wait_for(driver, lambda: driver.execute_script(
+        f"const s = document.querySelector('[data-testid={testid}]');"
+        "if (![...s.options].some(o => o.value === arguments[0])) return false;"
+        "s.value = arguments[0]; return s.value === arguments[0];", value), f"{value!r} chosen in {testid}")
+
+
 def open_page(driver, url):
     driver.get(url)
     wait_for(driver, lambda: driver.execute_script("return !!(window.__drivectl && window.__drivectl.built)"),
@@ -260,7 +269,7 @@ def test_the_scope_shows_live_data_freezes_with_cursors_and_saves_a_trace(tmp_pa
 
         # Explain refuses a capture too short to decide: one visible line, as the command says it
         tid(browser, "tab-explain").click()
-        Select(tid(browser, "explain-trace")).select_by_visible_text(csv[0].name)
+        choose(browser, "explain-trace", csv[0].name)
         tid(browser, "explain-run").click()
         wait_for(browser, lambda: text(browser, "explain-state") in ("failed",) or
                  text(browser, "explain-state").startswith("done"), "explain finished", timeout=300)
@@ -329,7 +338,7 @@ def test_explain_on_a_recorded_run_shows_its_report_and_plot(tmp_path, browser):
         open_page(browser, url)
         tid(browser, "tab-explain").click()
         wait_for(browser, lambda: "x-run.csv" in text(browser, "explain-trace"), "the run listed")
-        Select(tid(browser, "explain-trace")).select_by_visible_text("x-run.csv")
+        choose(browser, "explain-trace", "x-run.csv")
         tid(browser, "explain-run").click()
         wait_for(browser, lambda: text(browser, "explain-state") in ("failed",) or
                  text(browser, "explain-state").startswith("done"), "explain finished", timeout=600)

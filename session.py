@@ -50,7 +50,7 @@ from drivectl.controllers.runtime.loop import (
 )
 from drivectl.controllers.runtime.motion import PREVIEW_S, PlannedMove
 from drivectl.controllers.runtime.recording import trace_header
-from drivectl.controllers.runtime.servo import Channel, LimitError, check_run_length, run_preview
+from drivectl.controllers.runtime.servo import Channel, LimitError, offset_profile, plan_run, run_preview
 from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
@@ -349,18 +349,15 @@ class AxisControl:
         it there as it goes (tracefile/stream.py; the handle's ``path`` once ``wait()`` returned)."""
         self._require_enabled("run")
         rt, loop = self._rt, self._m.loop
-        n = check_run_length(profile.duration, loop.dt, f"profile {profile_name(profile)}: duration")
-        t = np.arange(n) * loop.dt
-        samples = list(profile.sample(t))
-        start = float(samples[0][0])
+        start = float(profile.sample(np.zeros(1))[0][0])
         here = rt.traj.target
         offset = here - start if relative else 0.0
-        if offset:
-            samples[0] = samples[0] + offset
-        rt.ch.limits.refuse_outside(f"axis {self.name}: run {profile_name(profile)}", samples[0], t)
+        ch = rt.ch  # the run's length and soft limits checked, its references sampled: as a one-shot run's
+        plan = plan_run([Channel(ch.axis, ch.controller, offset_profile(profile, offset), ch.limits)], chunk=None)
+        n, t, refs = plan.n, plan.t, plan.refs[0]
         m = rt.motion  # a profile is not generated here, but it moves the axis: the same bounds hold
-        for what, arr, bound, key in (("velocity", samples[1], m.max_velocity, "max_velocity_m_s"),
-                                      ("acceleration", samples[2], m.max_acceleration, "max_acceleration_m_s2")):
+        for what, arr, bound, key in (("velocity", refs[1], m.max_velocity, "max_velocity_m_s"),
+                                      ("acceleration", refs[2], m.max_acceleration, "max_acceleration_m_s2")):
             peak = float(np.max(np.abs(arr))) if len(arr) else 0.0
             if peak > bound * (1 + 1e-9) + 1e-12:
                 raise LimitError(f"axis {self.name}: run {profile_name(profile)}: {what} {peak:g} exceeds the axis's "
@@ -370,13 +367,12 @@ class AxisControl:
             raise LimitError(f"axis {self.name}: run {profile_name(profile)}: the axis stands at {here:.6f} m, the "
                              f"profile starts at {start:.6f} m (approach=True moves it there first, relative=True "
                              "runs it from here); nothing moved")
-        refs = [a.tolist() for a in samples]
-        run = ProfileRun(refs, n, rec=np.zeros((3, n)))
+        run = ProfileRun(plan, rec=np.zeros((3, n)))
         # the controller's reference preview, as a one-shot run has it; computed here, not in the loop's
         # cycle (a model-based feed-forward table takes milliseconds), installed when the run starts
         preview = run_preview(rt.ch.controller, profile, t, offset)
         name = profile_name(profile)
-        handle = Move(loop, self.name, "run", float(samples[0][-1]))
+        handle = Move(loop, self.name, "run", float(refs[0][-1]))
         meta = {"profile": name, "relative_offset_m": format_value(offset)}
         if record is not None:
             from drivectl.tracefile.stream import TraceWriter
@@ -491,7 +487,10 @@ class Machine:
         self.hardware = hardware  # tools.machine.Machine: the axes, the emulated drives, the bus
         self.loop = loop
         self.config = cfg
-        self.bus = hardware.bus
+        # the emulated drives run on the loop's clock: "lockstep" names the in-process delivery, which a
+        # wall-clock session paces (controllers/runtime/pacing.py)
+        self.bus = hardware.bus.replace(", lockstep)", ", paced on the wall clock)") if loop.clock == "wall" \
+            else hardware.bus
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
         self.unconfirmed: list[str] = []  # axes whose drive did not confirm the disable on close

@@ -22,6 +22,7 @@ from drivectl.profiles.base import Reference
 
 if TYPE_CHECKING:
     from drivectl.controllers.runtime.loop import AxisRuntime, ServoLoop
+    from drivectl.controllers.runtime.servo import RunPlan
 
 
 class MoveStatus(StrEnum):
@@ -135,16 +136,20 @@ class Move:
 
 @dataclass
 class ProfileRun:
-    """A profile being run on one axis: its samples, indexed per cycle; recorded into ``rec``."""
+    """A profile being run on one axis by the resident loop: the cursor ``k`` through a
+    :class:`~drivectl.controllers.runtime.servo.RunPlan` of one channel (checked and sampled whole by
+    ``plan_run`` outside the cycle: the one record of a run's references), and what the axis did,
+    recorded into ``rec`` (and ``append``-ed where it streams)."""
 
-    refs: list[list[float]]  # r, r', r'', r''' per cycle (offset applied)
-    n: int
+    plan: RunPlan
     k: int = 0
     rec: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))  # pos, vel, effort
     #: TraceWriter.append of a streamed record (time, ref, pos, effort, vel), or None
     append: Callable[..., None] | None = None
 
     def __post_init__(self) -> None:
+        self.refs = self.plan.refs[0]  # r, r', r'', r''' per cycle (offset applied)
+        self.n = self.plan.n
         self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
 
     def next(self) -> Reference:

@@ -28,6 +28,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.cycle import (
+    BRAKE_WAIT_S,
     SAFE_STATES,
     Channel,
     CycleFault,
@@ -83,21 +84,29 @@ def run(
     return run_channels([channel], duration=duration, progress=progress)
 
 
+def offset_profile(profile: Profile, offset: float) -> Profile:
+    """``profile`` shifted by ``offset`` m (a relative run of the resident loop); itself when 0."""
+    return _Offset(profile, offset) if offset else profile  # type: ignore[return-value]
+
+
 def run_preview(controller: Controller, profile: Profile, times: np.ndarray, offset: float = 0.0) -> object:
     """The controller's reference preview for a run of ``profile`` at the run's cycle times ``times``
     (controllers/base.py ``preview``), the profile's positions shifted by ``offset`` (a relative run of
     the resident loop). A one-shot run prepares the controller with the same profile and times
     (:func:`run_channels`); the resident loop computes this outside its cycle (``Controller.preview``
     only reads) and installs it with ``use_preview`` in the cycle the run takes the axis."""
-    return controller.preview(_Offset(profile, offset) if offset else profile, np.asarray(times, dtype=float))
+    return controller.preview(offset_profile(profile, offset), np.asarray(times, dtype=float))
 
 
 class _Offset:
-    """``profile`` with its positions shifted by ``offset`` m (a relative run)."""
+    """``profile`` with its positions shifted by ``offset`` m (a relative run; its name and file kept for
+    the messages)."""
 
     def __init__(self, profile: Profile, offset: float):
         self._p, self._offset = profile, offset
         self.duration = profile.duration
+        self.name = profile_name(profile)
+        self.source = getattr(profile, "source", None)
 
     def sample(self, t: np.ndarray):
         r, *rest = self._p.sample(t)
@@ -112,8 +121,12 @@ REF_CHUNK = 8192
 class RunPlan:
     """A run checked before anything moves: the channels, the cycle count and, chunk by chunk, every
     channel's reference (r, r', r'', r''' as Python lists: the cycle indexes them, no maths; the next
-    :data:`REF_CHUNK` cycles are sampled when the cycle reaches them, so the memory does not grow with
-    the run's length). ``keep``: the run's record is also held in memory (see :class:`Recording`)."""
+    ``chunk`` cycles are sampled when the cycle reaches them, so the memory does not grow with the run's
+    length). ``keep``: the run's record is also held in memory (see :class:`Recording`).
+
+    The one record of a run's references for both runners: a one-shot run (:func:`run_channels`) and
+    the resident loop's profile run (controllers/runtime/handles.py ``ProfileRun``, a cursor through a
+    plan of one channel, all of it loaded: nothing is sampled in the loop's cycle)."""
 
     channels: Sequence[Channel]
     dt: float
@@ -121,6 +134,7 @@ class RunPlan:
     refs: list[list[list[float]]] = field(default_factory=list)  # the chunk that starts at cycle ``base``
     base: int = 0
     keep: bool = True
+    chunk: int = REF_CHUNK
 
     @property
     def cycles(self) -> int:
@@ -133,16 +147,18 @@ class RunPlan:
 
     def load(self, k0: int) -> None:
         """Sample the chunk of references that starts at cycle ``k0``."""
-        t = np.arange(k0, min(k0 + REF_CHUNK, self.n)) * self.dt
+        t = np.arange(k0, min(k0 + self.chunk, self.n)) * self.dt
         self.refs = [[a.tolist() for a in ch.profile.sample(t)] for ch in self.channels]
         self.base = k0
 
 
-def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True) -> RunPlan:
+def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep: bool = True,
+             chunk: int | None = REF_CHUNK) -> RunPlan:
     """Check the channels and their profiles against the limits and sample the first references
     (LimitError or ValueError, nothing moved). Planning a second run before the first ends (an approach
     move, then the profile) lets the second follow the first within one cycle. ``keep=False``: the run
-    is recorded only where it streams (``run_channels(stream=...)``), at constant memory."""
+    is recorded only where it streams (``run_channels(stream=...)``), at constant memory. ``chunk``:
+    cycles of reference sampled at a time (None: all of them now)."""
     if not channels:
         raise ValueError("run: no axes given")
     dt = channels[0].axis.dt
@@ -159,7 +175,7 @@ def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep
     n = check_run_length(total, dt, what, streamed=not keep)
     for ch in channels:
         _check_profile(ch, (n - 1) * dt)
-    plan = RunPlan(channels, dt, n, keep=keep)
+    plan = RunPlan(channels, dt, n, keep=keep, chunk=chunk or n)
     plan.load(0)
     return plan
 
@@ -271,7 +287,7 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
             if request.signum:
                 raise _Interrupted  # at a cycle boundary: no frame is half-handled
             j = k - base
-            if j == REF_CHUNK:  # the next chunk of references (bounded memory), before the deadline wait
+            if j == plan.chunk:  # the next chunk of references (bounded memory), before the deadline wait
                 plan.load(k)
                 refs, base, j = plan.refs, k, 0
             if pacer is not None:
@@ -359,8 +375,6 @@ def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
 
 #: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
 STATE_CHANGE_CYCLES = 20
-#: the longest an enable may take (a holding brake's release delay included), s
-ENABLE_WAIT_S = 0.5
 
 
 def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool],
@@ -380,8 +394,8 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     for ch in channels:
         ch.axis.enable()
     # a drive with a holding brake reports Operation Enabled once the brake has released (tens to
-    # hundreds of ms): wait ENABLE_WAIT_S, not just the few cycles of the state machine itself
-    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
+    # hundreds of ms): wait BRAKE_WAIT_S, not just the few cycles of the state machine itself
+    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(BRAKE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
         late = [f"{ch.axis.name} ({ch.axis.power.value}" + (f": {why}" if (why := ch.axis.enable_blocker()) else "")
@@ -400,5 +414,5 @@ def _progress(n: int, enabled: bool):
 #: the run's vocabulary, importable from here as from its own modules (cycle, pacing, recording)
 __all__ = ["CHECK_WINDOW_S", "MAX_RUN_CYCLES", "MAX_STREAMED_CYCLES", "REF_CHUNK", "SAFE_STATES", "STATE_CHANGE_CYCLES",
            "Channel", "CycleFault", "Fault", "LimitError", "Limits", "Pacer", "Recording", "RunOutcome", "RunPlan",
-           "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "plan_run", "run",
-           "run_channels", "run_preview", "sample_axis", "trace_header"]
+           "RunResult", "StopReason", "check_and_write", "check_run_length", "control", "offset_profile", "plan_run",
+           "run", "run_channels", "run_preview", "sample_axis", "trace_header"]

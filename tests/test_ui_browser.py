@@ -40,7 +40,11 @@ def tid(driver, name):
 
 
 def text(driver, name):
-    return tid(driver, name).text
+    """An element's shown text, read in one script (the page rebuilds some, e.g. the loop table, on every
+    status: a found element may go stale before its text is read)."""
+    return driver.execute_script(f"const e = document.querySelector('[data-testid=\"{name}\"]');"
+                                 "if (!e) throw new Error('no element ' + arguments[0]); return e.innerText.trim();",
+                                 name)
 
 
 def wait_for(driver, cond, what, timeout=WAIT_S):

@@ -46,7 +46,7 @@ profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
 max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
 # rpdo_timeout_ms = 6           # the drive's deadline on our RPDO (0x1400:05); default: from the axis's physics
-                                # (docs/timing.md: x 6 ms, z 6 ms); 0 = off
+                                # (docs/timing.md: x 17 ms, z 17 ms); 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 # mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
@@ -62,7 +62,7 @@ last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT St
 [axes.x.limits]
 # position_m / following_error_m / following_time_s left out: taken from the drive (0x607D, 0x6065/0x6066)
 position_m = [-0.1, 0.1]        # soft limits
-max_effort = 2000.0             # N, clipped here and by the drive (0x6072)
+max_effort = 300.0              # N (3x rated), clipped here and by the drive (0x6072)
 following_error_m = 0.001       # window
 following_time_s = 0.01
 max_speed_m_s = 2.0             # a position step faster than this between two samples is implausible
@@ -80,7 +80,7 @@ law = 14
 standstill_gain = 300.0         # N/(um s): integral action at rest, where the law alone stands off (docs/standstill.md)
 [axes.y.limits]
 position_m = [-0.1, 0.1]
-max_effort = 2000.0
+max_effort = 300.0
 following_error_m = 0.001
 following_time_s = 0.01
 
@@ -105,7 +105,7 @@ brake_engage_ms = 20            # the power stage holds the axis this long after
 # accel_filter_hz = 150.0
 [axes.z.limits]
 position_m = [-0.01, 0.1]
-max_effort = 30.0               # V
+max_effort = 5.0                # V
 following_error_m = 0.001
 following_time_s = 0.01
 

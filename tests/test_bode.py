@@ -125,8 +125,8 @@ def test_bad_band_or_amplitude_exit_2(argv: list[str], tmp_path, capsys: pytest.
 
 
 def test_loop_stopped_exit_1_no_files(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
-    # 15 V peak on z (half its max_effort) throws the table out of the 1 mm following window
-    rc = _run(["--axis", "z", "--sim", "--seconds", "4", "--amplitude", "15", "--out", str(tmp_path)])
+    # 2.5 V peak on z (half its max_effort) throws the table out of the 1 mm following window
+    rc = _run(["--axis", "z", "--sim", "--seconds", "4", "--amplitude", "2.5", "--out", str(tmp_path)])
     err = capsys.readouterr().err
     assert rc == 1
     assert len(err.strip().splitlines()) == 1 and "following error" in err
@@ -145,12 +145,13 @@ def test_model_frf_low_frequency_is_the_rigid_mass() -> None:
 
 def test_friction_axis_measured_about_a_velocity_bias_has_no_false_mode() -> None:
     # rigid-x under mbc (the default): holding still, its stiff loop leaves the axis stuck in its Coulomb
-    # friction and the stick-slip reads as a ~10.5 Hz "mode"; sliding at a constant velocity it is the plant
+    # friction and the stick-slip reads as a 10-14 Hz "mode" (its frequency follows the excitation amplitude);
+    # sliding at a constant velocity it is the plant
     cfg = load_config(None)
     assert cfg.axis("x").controller == "mbc"
     held = measure_frf(cfg, "x", sim=True, seconds=5, bias_velocity=0.0)
     assert held.ok and held.bias_velocity == 0.0
-    assert held.mode is not None and 8.0 < held.mode_hz < 13.0  # the artefact the bias removes
+    assert held.mode is not None and 8.0 < held.mode_hz < 16.0  # the artefact the bias removes
     res = measure_frf(cfg, "x", sim=True, seconds=5)
     assert res.ok, res.detail
     assert res.bias_velocity == pytest.approx(0.01)  # the 10 mm/s cap: 5 s at it travel 50 mm of the 200

@@ -38,7 +38,7 @@ def test_status_decodes_state_mode_and_error(capsys):
     assert s["power_state"] == "Switch On Disabled" and s["error"] == "no error" and s["nmt"] == "PRE-OPERATIONAL"
     # a fresh drive holds its EDS default; the configured limit is written when an axis connects
     limit = (s["max_torque_permille"], s["max_torque"], s["max_effort"], s["effort_unit"])
-    assert limit == (32767, 3276.7, 2000.0, "N")
+    assert limit == (32767, 3276.7, 300.0, "N")
 
 
 @pytest.mark.parametrize(("command", "state"), [("enable", "Operation Enabled"), ("disable", "Switch On Disabled"),

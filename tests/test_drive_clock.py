@@ -223,14 +223,14 @@ def _paced_run(stall_s: float, *, paced: bool = True, rpdo_timeout_ms: int | Non
 
 
 def test_paced_in_process_a_late_master_is_caught_by_the_drive_deadline():
-    """--paced in-process: the drive's RPDO deadline (0x1400:05, 6 ms from x's physics: docs/timing.md) runs
-    on the wall clock, as across processes. A master 10 ms late is caught by the drive (0x8250, reaction per
+    """--paced in-process: the drive's RPDO deadline (0x1400:05, 17 ms from x's physics: docs/timing.md) runs
+    on the wall clock, as across processes. A master 25 ms late is caught by the drive (0x8250, reaction per
     0x6007); the master sees the drive leave Operation Enabled in its next sample and stops, the end state
     reported by the drive."""
     from drivectl.controllers.runtime.servo import StopReason
 
-    res, drive, _ = _paced_run(0.010)
-    assert drive._rpdo_timeout_ms == 6
+    res, drive, _ = _paced_run(0.025)
+    assert drive._rpdo_timeout_ms == 17
     assert res.stop is StopReason.FAULT
     f = res.fault
     assert f.kind in ("drive left Operation Enabled", "drive fault") and f.cycle == 200, f

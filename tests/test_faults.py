@@ -170,7 +170,7 @@ def test_following_error_window_and_soft_limits_from_the_drive_objects(tmp_path)
     text = DEFAULT_CONFIG_TOML
     for line in ("position_m = [-0.1, 0.1]        # soft limits\n", "following_error_m = 0.001       # window\n",
                  "following_time_s = 0.01\n",
-                 "max_effort = 2000.0             # N, clipped here and by the drive (0x6072)\n"):
+                 "max_effort = 300.0              # N (3x rated), clipped here and by the drive (0x6072)\n"):
         assert line in text
         text = text.replace(line, "", 1)
     path = tmp_path / "m.toml"

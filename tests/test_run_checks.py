@@ -86,7 +86,7 @@ def test_clipped_past_the_fault_threshold_stops_the_run_mid_run(tmp_path, capsys
     than half of the first 1000 cycles are clipped, the stop verified by the drive, the trace kept."""
     path = tmp_path / "machine.toml"
     # a weak drive (0.5 N) that the window lets lag: clipped nearly every cycle, no other limit trips
-    text = DEFAULT_CONFIG_TOML.replace("max_effort = 2000.0             # N", "max_effort = 0.5 # N", 1).replace(
+    text = DEFAULT_CONFIG_TOML.replace("max_effort = 300.0              # N", "max_effort = 0.5 # N", 1).replace(
         "following_error_m = 0.001       # window", "following_error_m = 0.09", 1)
     assert text != DEFAULT_CONFIG_TOML
     path.write_text(text)

@@ -272,8 +272,11 @@ def test_an_exception_inside_the_context_disables_every_axis(tmp_path):
 def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
     """The threaded loop on the wall clock: outcome only (no timing asserted). The drive's RPDO deadline runs
     on the wall clock too; 50 ms here so that a loaded test machine's hiccups are not this test's subject."""
+    import os
+
     cfg = config()
     object.__setattr__(cfg.axis("x"), "rpdo_timeout_ms", 50)
+    was = (os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0))
     with drivectl.connect(cfg, axes=["x"], clock="wall", fault_dir=tmp_path, stall_s=1.0) as m:
         x = m.axes["x"]
         x.enable()
@@ -282,8 +285,13 @@ def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
         st = m.status()
         assert st["clock"].startswith("wall") and st["cycles"] > 100
         assert {"missed_deadlines", "worst_late_ms", "stalls", "gc_collections"} <= set(st)
-        assert "gc" in st["granted"]
+        assert "gc" in st["granted"] and "others" in st["granted"]
+        assert "paced on the wall clock" in st["bus"]
+        if st["granted"]["others"].startswith("the process's other threads at SCHED_FIFO"):
+            assert os.sched_getscheduler(0) == os.SCHED_FIFO  # this (the program's) thread, below the loop
     assert x.power is PowerState.SWITCH_ON_DISABLED
+    # the last loop put back what it changed (controllers/runtime/host.py)
+    assert (os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)) == was
 
 
 def homing_config(method: str, **homing):

@@ -77,6 +77,10 @@ class Limits(Settings):
 
 
 
+#: the longest a power-state change may take: a drive with a holding brake reports Operation Enabled once
+#: the brake has released, and leaves it once the brake has engaged (tens to hundreds of ms), s
+BRAKE_WAIT_S = 0.5
+
 #: power states with the torque off: where a stop must end
 SAFE_STATES = (PowerState.SWITCH_ON_DISABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT,
                PowerState.FAULT_REACTION_ACTIVE)
@@ -149,12 +153,15 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
 
 
 def control(ch: Channel, ref: Reference, fb: Feedback) -> float:
-    """The control law, clipped to the effort limit (clipped cycles counted)."""
+    """The control law, clipped to the effort limit (clipped cycles counted). A clipped cycle tells the law
+    what was applied: an observer that took its own unclipped command for what acted would read the
+    difference as a disturbance and wind up against the limit (the anti-windup of an observer)."""
     u = ch.controller.step(ref, fb)
     lim = ch.limits.max_effort
     if u > lim or u < -lim:
         ch.clipped += 1
-        return lim if u > 0 else -lim
+        u = lim if u > 0 else -lim
+        ch.controller.note_applied(u)
     return u
 
 

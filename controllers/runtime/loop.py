@@ -49,6 +49,7 @@ from typing import Any
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.capture import CHANNELS, Capture, Ring, Trigger
 from drivectl.controllers.runtime.cycle import (
+    BRAKE_WAIT_S,
     SAFE_STATES,
     Channel,
     CycleFault,
@@ -63,9 +64,11 @@ from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, 
 from drivectl.controllers.runtime.host import (
     release_blas,
     release_gc,
+    release_others,
     release_switch,
     take_blas,
     take_gc,
+    take_others,
     take_switch,
 )
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
@@ -194,6 +197,7 @@ class ServoLoop:
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
         self._gc_taken = False  # this loop holds the process's collector (wall clock)
         self._blas_taken = False  # this loop holds the process's BLAS limit (wall clock)
+        self._others_taken = False  # this loop raised the process's other threads (wall clock, realtime)
         self.error: BaseException | None = None  # what killed the loop thread, if anything
         #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
         self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
@@ -204,10 +208,11 @@ class ServoLoop:
         if self.clock == "lockstep":
             self._cycle_all()
             return
-        self._thread = threading.Thread(target=self._thread_main, name="drivectl-servo-loop", daemon=True)
-        self._thread.start()
+        # the watchdog first: the loop thread raises the threads it finds (controllers/runtime/host.py)
         self._watchdog = threading.Thread(target=self._watchdog_main, name="drivectl-loop-watchdog", daemon=True)
         self._watchdog.start()
+        self._thread = threading.Thread(target=self._thread_main, name="drivectl-servo-loop", daemon=True)
+        self._thread.start()
         if not self.run_until(lambda: self.cycle > 0, 2.0):
             raise AxisError(f"loop: no cycle within 2 s of starting ({self.error or 'the loop thread hangs'})")
 
@@ -224,7 +229,7 @@ class ServoLoop:
                 for rt in self._rts:
                     self.submit(lambda rt=rt: self.disable_axis(rt, "the machine closed"))
                 self.run_until(lambda: all(rt.ch.axis.power not in _ENABLED for rt in self._rts),
-                               timeout if self.clock == "wall" else STATE_CHANGE_CYCLES * self.dt)
+                               timeout if self.clock == "wall" else max(STATE_CHANGE_CYCLES * self.dt, BRAKE_WAIT_S))
         finally:
             self._closing = True
             self._closed.set()
@@ -246,6 +251,9 @@ class ServoLoop:
             if self._blas_taken:
                 release_blas()
                 self._blas_taken = False
+            if self._others_taken:
+                release_others()
+                self._others_taken = False
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
@@ -605,6 +613,8 @@ class ServoLoop:
                 self.granted["priority"] = "SCHED_FIFO 50"
             except OSError as exc:
                 self.granted["priority"] = f"SCHED_FIFO not granted ({exc.strerror}); normal priority"
+            self.granted["others"] = take_others(threading.get_native_id())
+            self._others_taken = True
 
     def _collect(self, pacer: Pacer, k: int) -> None:
         """A young-generation collection, only when at least half a cycle is left before the next."""

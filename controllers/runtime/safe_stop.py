@@ -23,17 +23,19 @@ the trace, as "may still be powered", with what was tried.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from drivectl.controllers.runtime.cycle import SAFE_STATES, Channel, Fault
+from drivectl.controllers.runtime.cycle import BRAKE_WAIT_S, SAFE_STATES, Channel, Fault
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 
 #: cycles a drive has to report a safe state after each step before the next one (a CiA 402 drive in
 #: cyclic synchronous torque takes a quick stop at the next SYNC)
 CONFIRM_CYCLES = 2
-#: cycles the disable that follows a confirmed quick stop may take
+#: cycles the disable that follows a confirmed quick stop may take (at least BRAKE_WAIT_S: a holding
+#: brake engages before the power stage switches off)
 SETTLE_CYCLES = 20
 
 _STILL_CHANGING = (PowerState.OPERATION_ENABLED, PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE)
@@ -120,7 +122,7 @@ def stop_axes(axes: Sequence[Axis], fault_kind: str | None = None, fault_axis: s
     for ax in axes:
         if done(ax) and ax.power is not PowerState.FAULT:
             quietly(ax.disable)
-    for _ in range(SETTLE_CYCLES):
+    for _ in range(max(SETTLE_CYCLES, *(math.ceil(BRAKE_WAIT_S / ax.dt) for ax in axes))):
         if all(ax.power not in _STILL_CHANGING for ax in axes if done(ax)):
             break
         if not _stop_cycle(axes, on_cycle):

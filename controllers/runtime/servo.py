@@ -28,6 +28,7 @@ import numpy as np
 
 from drivectl.controllers.base import Controller
 from drivectl.controllers.runtime.cycle import (
+    BRAKE_WAIT_S,
     SAFE_STATES,
     Channel,
     CycleFault,
@@ -372,8 +373,6 @@ def _axis_of(exc: AxisError, channels: Sequence[Channel]) -> str:
 
 #: cycles a drive may take to reach a commanded power state (CiA 402: two or three)
 STATE_CHANGE_CYCLES = 20
-#: the longest an enable may take (a holding brake's release delay included), s
-ENABLE_WAIT_S = 0.5
 
 
 def _cycle_until(channels: Sequence[Channel], done: Callable[[Axis], bool],
@@ -393,8 +392,8 @@ def _bring_up(channels: Sequence[Channel]) -> None:
     for ch in channels:
         ch.axis.enable()
     # a drive with a holding brake reports Operation Enabled once the brake has released (tens to
-    # hundreds of ms): wait ENABLE_WAIT_S, not just the few cycles of the state machine itself
-    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(ENABLE_WAIT_S / ch.axis.dt) for ch in channels))
+    # hundreds of ms): wait BRAKE_WAIT_S, not just the few cycles of the state machine itself
+    cycles = max(STATE_CHANGE_CYCLES, *(math.ceil(BRAKE_WAIT_S / ch.axis.dt) for ch in channels))
     if not _cycle_until(channels, lambda ax: ax.power is PowerState.OPERATION_ENABLED, cycles):
         # the drive's own reason where it gives one (driver/enable_check.py), not just "timed out"
         late = [f"{ch.axis.name} ({ch.axis.power.value}" + (f": {why}" if (why := ch.axis.enable_blocker()) else "")

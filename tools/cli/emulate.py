@@ -169,6 +169,19 @@ def _open_emulator_bus(args: argparse.Namespace) -> tuple[can.BusABC, str, str]:
     raise EmulateArgError("choose a bus: --slcan, --socketcand [PORT] or --interface socketcan")
 
 
+def _drive_priority() -> None:
+    """A drive's firmware runs its cycle on a real-time clock: the emulator's threads (this one and those
+    the bus starts after it) take SCHED_FIFO 49, below the master's loop (50), where the OS grants it, so
+    a program beside them does not make the emulated drive late (docs/timing.md)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(49))
+    except OSError as exc:
+        print(f"emulate: SCHED_FIFO not granted ({exc.strerror}): the drives run at normal priority",
+              file=sys.stderr, flush=True)
+
+
 def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
     from drivectl.driver import cia402
     from drivectl.driver.network import BusLog, log_sent_frames
@@ -198,6 +211,7 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         bus.shutdown()
         raise EmulateArgError(f"--bus-log {args.bus_log}: cannot write: {exc}") from None
     net = canopen.Network(bus)  # no notifier: this process pumps its own bus, in order
+    _drive_priority()
     for flag, value in (("--boot-delay-ms", args.boot_delay_ms), ("--sync-loss-ms", args.sync_loss_ms)):
         if value is not None and not (value >= 0 and value < 1e6):
             bus.shutdown()

@@ -63,8 +63,9 @@ DEFAULT_AMPLITUDE_RATED = 0.5
 #: the response is not the linear one (rigid-x, measured: 2x Coulomb reads 5-20 dB under the model,
 #: 6x within 1 dB from 20 Hz up, 5 dB low at 10 Hz where the loop holds the axis near rest)
 COULOMB_MULTIPLE = 6.0
-#: ... and at most this fraction of max_effort
-MAX_DEFAULT_FRACTION = 0.25
+#: ... and at most this fraction of max_effort (the most --amplitude takes: a drive peak of 3x rated leaves
+#: 1.5x rated for the excitation)
+MAX_DEFAULT_FRACTION = 0.5
 #: the slow constant-velocity bias on an axis whose model has Coulomb friction (see the module doc): at
 #: most this fast (a slow feed) ...
 BIAS_MAX_M_S = 0.01

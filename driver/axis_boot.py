@@ -22,6 +22,7 @@ from drivectl.driver.cia301 import (
     NmtState,
 )
 from drivectl.driver.pdo_plan import entry_bits
+from drivectl.driver.running_time import wait_running
 
 #: timeouts across processes are this many times the drive's measured SDO round trip (at least the defaults)
 PEER_RTT_FACTOR = 10.0
@@ -86,16 +87,24 @@ class AxisBoot:
         self._connected = True
 
     def _adapt_to_peer(self, rtt: float) -> None:
-        """Timeouts from what this drive on this bus takes to answer (``rtt``: an SDO round trip, measured):
-        SDO answers and a cycle's TPDOs get PEER_RTT_FACTOR times that, never less than the defaults. A
-        drive behind a slow host or a loaded VM answers late by a factor the defaults cannot know."""
+        """Timeouts from what this drive on this bus takes to answer (``rtt``: the slowest SDO round trip
+        measured so far, at connect() and by every SDO exchange after it): SDO answers and a cycle's TPDOs
+        get PEER_RTT_FACTOR times that, never less than the defaults. A drive behind a slow host or a
+        loaded VM answers late by a factor the defaults cannot know. The waits count this process's
+        running time only (driver/running_time.py): a stall of our own host is not the drive's."""
         self.peer_rtt = rtt
-        self.node.sdo.RESPONSE_TIMEOUT = max(self._sdo_timeout, PEER_RTT_FACTOR * rtt)
-        self.tpdo_timeout = max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt)
+        # at most the boot-up's wait: one outlier (a stall of seconds) must not make every later silence,
+        # a real one included, take minutes to be noticed
+        cap = max(self._sdo_timeout, self.timeout)
+        self.node.sdo.RESPONSE_TIMEOUT = min(cap, max(self._sdo_timeout, PEER_RTT_FACTOR * rtt))
+        self.tpdo_timeout = min(cap, max(self._tpdo_timeout, PEER_RTT_FACTOR * rtt))
         # a run not paced on the wall clock (a trace as fast as it goes) waits for a cycle's TPDOs up to half
-        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016): a slow
-        # drive is waited for, and a master that gives up still sends its next SYNC within the drive's window
-        self._unpaced_wait = max(self.tpdo_timeout, 1.5 * self.clock.heartbeat_cycles * self.dt)
+        # the time the drive waits for our SYNC and heartbeat (the consumer time we give it, 0x1016), on the
+        # wall clock too (read()): a slow drive is waited for, and a master that gives up still sends its next
+        # SYNC within the drive's window, however slow the drive's SDO answers were
+        tolerance = 1.5 * self.clock.heartbeat_cycles * self.dt
+        self._unpaced_wait = max(self.tpdo_timeout, tolerance)
+        self._unpaced_wall = tolerance or None
 
     def _wait(self, event: threading.Event, what: str) -> None:
         # in lockstep simulated time passes, one cycle at a time, until the answer (a drive's boot-up
@@ -105,7 +114,7 @@ class AxisBoot:
                 if event.is_set():
                     break
                 self.network.lockstep.advance(self.dt)
-        if not (event.is_set() or (not self.lockstep and event.wait(self.timeout))):
+        if not (event.is_set() or (not self.lockstep and wait_running(event, self.timeout))):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no {what} within {self.timeout:g} s")
 
     def _boot(self) -> None:
@@ -141,13 +150,18 @@ class AxisBoot:
             self._sent_stop = False
             self.heartbeat_state = int(NmtState.PRE_OPERATIONAL)
             self.network.send_message(NMT_COB_ID, bytes([NmtCommand.ENTER_PRE_OPERATIONAL, self.node_id]))
+        t0 = time.perf_counter()
         try:
             var = self.node.sdo[index]
             if sub is not None and not isinstance(self.od[index], odt.ODVariable):
                 var = var[sub]  # (a plain variable is its own sub-index 0)
             if value is None:
-                return var.raw
-            var.raw = value
+                value = var.raw
+            else:
+                var.raw = value
+            if self.peer_rtt is not None and time.perf_counter() - t0 > self.peer_rtt:
+                # the drive (or its host) answered slower than measured so far: every timeout follows
+                self._adapt_to_peer(time.perf_counter() - t0)
             return value
         except canopen.SdoAbortedError as exc:
             raise AxisConfigError(f"axis {self.name}: node {self.node_id}: SDO {what} aborted: {exc}") from None

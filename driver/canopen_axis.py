@@ -73,6 +73,7 @@ from drivectl.driver.pdo_mappings import (  # noqa: F401 - re-exported: the mapp
 )
 from drivectl.driver.pdo_plan import PdoPlan
 from drivectl.driver.pdo_plan import plan as plan_pdos
+from drivectl.driver.running_time import RunningTimeSdoClient, wait_running
 from drivectl.driver.sync_clock import SyncClock
 from drivectl.driver.units import EffortScale, Encoder
 
@@ -88,6 +89,18 @@ _RX_KIND = {cia402.CONTROLWORD: _RX_CW, cia402.TARGET_TORQUE: _RX_TT}
 
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
+
+
+class _Node(canopen.RemoteNode):
+    """canopen's remote node whose SDO answers are waited for in this process's running time
+    (driver/running_time.py): a stalled host is not a silent drive."""
+
+    def add_sdo(self, rx_cobid: int, tx_cobid: int) -> RunningTimeSdoClient:
+        client = RunningTimeSdoClient(rx_cobid, tx_cobid, self.object_dictionary)
+        self.sdo_channels.append(client)
+        if self.has_network():
+            self.network.subscribe(client.tx_cobid, client.on_response)
+        return client
 
 
 class CanopenAxis(AxisBoot, AxisStop, Axis):
@@ -130,6 +143,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         # the floors of the timeouts adapted to the drive's measured answer time at connect() (_adapt_to_peer)
         self._tpdo_timeout = tpdo_timeout
         self._unpaced_wait = tpdo_timeout
+        self._unpaced_wall: float | None = None  # the drive's SYNC tolerance bounds it (_adapt_to_peer)
         self._paced = False  # a run paced on the wall clock is under way (pace())
         self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
@@ -172,7 +186,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self.od = od
         self.identity = identity if identity is not None else Identity(
             od.device_information.vendor_number, od.device_information.product_number)
-        self.node = canopen.RemoteNode(node_id, od)
+        self.node = _Node(node_id, od)
         self._sdo_timeout = self.node.sdo.RESPONSE_TIMEOUT  # canopen's default (0.3 s)
         network.add_node(self.node)
         self.node.emcy.add_callback(self._on_emcy)
@@ -352,7 +366,10 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                              "beside the transport's periodic one: the drive steps at the wrong rate)")
         self.state_fresh = False
         if not all(self._fresh) and not self.lockstep:
-            self._arrived.wait(self.tpdo_timeout if self._paced else self._unpaced_wait)
+            if self._paced:  # a deadline on the wall clock
+                self._arrived.wait(self.tpdo_timeout)
+            else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
+                wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
         self._consumed = cycle
         if self._foreign is not None and not self._foreign_seen:
             self._foreign_seen = True  # raised once; the stop that follows must still cycle

@@ -46,7 +46,7 @@ profile = "circle"              # built-in profile name or a profile TOML file
 encoder_m_per_count = 76.29e-9
 max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapolated) before it is a fault
 # rpdo_timeout_ms = 6           # the drive's deadline on our RPDO (0x1400:05); default: from the axis's physics
-                                # (docs/timing.md: x 17 ms, z 12 ms); 0 = off
+                                # (docs/timing.md: x 17 ms, z 17 ms); 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
 # mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
@@ -105,7 +105,7 @@ brake_engage_ms = 20            # the power stage holds the axis this long after
 # accel_filter_hz = 150.0
 [axes.z.limits]
 position_m = [-0.01, 0.1]
-max_effort = 10.0               # V
+max_effort = 5.0                # V
 following_error_m = 0.001
 following_time_s = 0.01
 

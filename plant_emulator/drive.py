@@ -61,6 +61,7 @@ class DriveModel:
         self.error_code = 0
         self.applied = 0.0  # effort acting during the current cycle
         self.syncs = 0
+        self.free_steps = 0  # plant steps on the drive's own clock (no SYNC): a run that had any is not lockstep
         self._last_cw = 0
         # False while no mode is selected that this drive runs (0x6060 = 0, CiA 402: no torque then);
         # SimAxis has no 0x6060 and is always in cyclic synchronous torque
@@ -113,6 +114,7 @@ class DriveModel:
         """One cycle of the drive's own clock with no SYNC (the master silent, or an SDO-only master):
         the plant moves on under the effort applied, the controlword received since is taken."""
         if self.syncs or self.applied:
+            self.free_steps += 1
             self._step(self.applied)
         self._take(controlword, setpoint)
 

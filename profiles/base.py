@@ -132,6 +132,12 @@ def profile_name(profile: Profile) -> str:
     return str(getattr(profile, "name", type(profile).__name__))
 
 
+def profile_label(profile: Profile) -> str:
+    """How a message names a profile: its name and, for one read from a file, the file."""
+    source = getattr(profile, "source", None)
+    return f"{profile_name(profile)} ({source})" if source else profile_name(profile)
+
+
 # Slack on every limit: profile maths rounds (ruckig's cruise velocity is vmax -+ 1 ulp), and a move
 # planned right at a limit must pass.
 LIMIT_TOLERANCE = 1e-9
@@ -181,8 +187,7 @@ def check_limits(
     A tolerance of 1e-9 (in the SI unit of each quantity) absorbs rounding.
     """
     name = profile_name(profile)
-    source = getattr(profile, "source", None)
-    shown = f"{name} ({source})" if source else name
+    shown = profile_label(profile)
     if position is not None:
         if len(position) != 2:
             raise ProfileError(f"profile {name}: position limits: expected (lower, upper), got {position!r}")

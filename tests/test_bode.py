@@ -125,8 +125,8 @@ def test_bad_band_or_amplitude_exit_2(argv: list[str], tmp_path, capsys: pytest.
 
 
 def test_loop_stopped_exit_1_no_files(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
-    # 5 V peak on z (half its max_effort) throws the table out of the 1 mm following window
-    rc = _run(["--axis", "z", "--sim", "--seconds", "4", "--amplitude", "5", "--out", str(tmp_path)])
+    # 2.5 V peak on z (half its max_effort) throws the table out of the 1 mm following window
+    rc = _run(["--axis", "z", "--sim", "--seconds", "4", "--amplitude", "2.5", "--out", str(tmp_path)])
     err = capsys.readouterr().err
     assert rc == 1
     assert len(err.strip().splitlines()) == 1 and "following error" in err

@@ -295,7 +295,7 @@ def test_the_machine_writes_each_axis_limit_to_its_drive():
         for n in ("x", "z"):
             want = round(cfg.axis(n).limits.max_effort * 1000 / cfg.axis(n).rated_effort)
             assert machine.drives[n].max_torque == want == machine.axes[n].max_torque_permille
-        assert machine.drives["x"].max_torque == 3000 and machine.drives["z"].max_torque == 10000
+        assert machine.drives["x"].max_torque == 3000 and machine.drives["z"].max_torque == 5000
     finally:
         machine.close()
 

@@ -83,7 +83,8 @@ def test_emulate_in_another_process_gives_the_simulations_trace(tmp_path):
     cfg.write_text(DEFAULT_CONFIG_TOML.replace('interface = "virtual"', 'interface = "socketcan"', 1).replace(
         'channel = "drivectl"', f'channel = "{CHANNEL}"', 1))
     emu = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(cfg), "emulate", "--interface",
-                            "socketcan", "--channel", CHANNEL, "--axis", "x"], stdout=subprocess.PIPE, text=True)
+                            "socketcan", "--channel", CHANNEL, "--axis", "x"], stdout=subprocess.PIPE,
+                           stderr=(tmp_path / "emulate.err").open("w"), text=True)
     try:
         for line in emu.stdout:  # announced once its drive has booted
             if line.startswith("point a master"):
@@ -94,8 +95,11 @@ def test_emulate_in_another_process_gives_the_simulations_trace(tmp_path):
     finally:
         emu.send_signal(signal.SIGINT)
         emu.wait(60)
+    said = (tmp_path / "emulate.err").read_text()
     assert main([*base, "--sim", "--out", str(tmp_path / "sim")]) == 0
     bus, sim = (Trace.read(next((tmp_path / d).glob("x-*.csv"))) for d in ("bus", "sim"))
     assert len(bus.pos) == len(sim.pos) == 1501
     differ = np.nonzero((bus.pos != sim.pos) | (bus.effort != sim.effort))[0]
-    assert len(differ) == 0, f"the traces differ from data row {differ[0]} on"
+    assert len(differ) == 0, (f"the traces differ from data row {differ[0]} on (master: "
+                              f"{bus.meta.get('tpdo_lost_cycles')} cycles bridged, {bus.meta.get('tpdo_late_frames')} "
+                              f"late TPDOs; emulator: {said.strip().splitlines()[-1:]})")

@@ -36,7 +36,7 @@ def test_the_machine_writes_each_axis_deadline_to_its_drive():
 
     cfg = load_config(None)
     with open_machine(cfg, ["x", "z"]) as m:
-        assert {n: d.ms for n, d in m.deadlines.items()} == {"x": 17, "z": 12}  # docs/timing.md
+        assert {n: d.ms for n, d in m.deadlines.items()} == {"x": 17, "z": 17}  # docs/timing.md
         for n in ("x", "z"):
             assert m.drives[n]._rpdo_timeout_ms == m.deadlines[n].ms  # written to the drive (0x1400:05), watched
 

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -16,9 +15,12 @@ from ui_helpers import get, machine_config, running_console, ui_stack_or_skip
 ui_stack_or_skip()
 
 
-def start_ui(tmp_path, *extra: str) -> tuple[subprocess.Popen, str]:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "drivectl.tools.cli.main", "ui", "--port", "0", "--out",
+UI = [sys.executable, "-m", "drivectl.tools.cli.main", "ui"]
+
+
+def start_ui(tmp_path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str]:
+    env = {**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([*UI, "--port", "0", "--out",
                              str(tmp_path / "traces"), *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=env, cwd=tmp_path)
     url = ""
@@ -64,6 +66,28 @@ def test_drivectl_ui_serves_with_a_token_on_loopback_and_a_signal_disables_every
     assert "closed: x Switch On Disabled" in err  # as the drive reported it after the disable
 
 
+def test_the_pages_quit_disables_every_axis_and_ends_the_console(tmp_path):
+    import json
+
+    from websockets.sync.client import connect as ws_connect
+
+    proc, url = start_ui(tmp_path, "--axis", "x")
+    try:
+        base, token = url.split("/?")[0], url.split("token=")[1]
+        with ws_connect(base.replace("http", "ws") + f"/ws?token={token}") as ws:
+            for rid, op in ((1, "enable"), (2, "quit")):
+                ws.send(json.dumps({"id": rid, "op": op, "axis": "x"}))
+                while (msg := json.loads(ws.recv(timeout=60)))["type"] != "reply":
+                    pass
+                assert msg["ok"], msg
+        _out, err = proc.communicate(timeout=60)  # the page's Quit ends it: no signal sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "closed: x Switch On Disabled" in err
+
+
 def test_listen_beyond_loopback_warns_and_a_bad_address_is_refused(tmp_path):
     proc, url = start_ui(tmp_path, "--axis", "x", "--listen", "0.0.0.0")
     try:
@@ -80,6 +104,86 @@ def test_listen_beyond_loopback_warns_and_a_bad_address_is_refused(tmp_path):
     r = subprocess.run([sys.executable, "-m", "drivectl.tools.cli.main", "ui", "--port", "70000"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "--port" in r.stderr
+
+
+def stop_ui(proc: subprocess.Popen) -> tuple[str, str]:
+    try:
+        proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_config_after_the_command_is_the_machine_served(tmp_path):
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(DEFAULT_CONFIG_TOML.replace("[axes.x", "[axes.feed"))  # an axis the embedded one lacks
+    proc, url = start_ui(tmp_path, "--config", str(cfg), "--axis", "feed")
+    _out, err = stop_ui(proc)
+    assert proc.returncode == 0, err
+    assert "closed: feed Switch On Disabled" in err
+
+
+@pytest.mark.parametrize("text, expect", [
+    (None, "{cfg}: no such configuration file"),
+    ("following_error_m = 0.001", "{cfg}: axes.x.limits.following_error_m: must be > 0, got -1"),
+    ('controller = "mbc"', "{cfg}: axes.x.controller: unknown controller 'mbcx'"),
+])
+def test_a_bad_config_is_one_line_naming_file_and_field_exit_2_before_anything(tmp_path, text, expect):
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+
+    cfg = tmp_path / "machine.toml"
+    if text is not None:
+        bad = {"following_error_m = 0.001": "following_error_m = -1", 'controller = "mbc"': 'controller = "mbcx"'}
+        cfg.write_text(DEFAULT_CONFIG_TOML.replace(text, bad[text], 1))
+    r = subprocess.run([*UI, "--config", str(cfg), "--port", "0", "--out", str(tmp_path / "traces")],
+                       capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert r.returncode == 2 and r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("drivectl: " + expect.format(cfg=cfg)), r.stderr
+    assert not (tmp_path / "traces").exists()  # nothing written, no bus opened
+
+
+def test_a_port_in_use_is_one_line_exit_2(tmp_path):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = subprocess.run([*UI, "--port", str(port), "--out", str(tmp_path / "traces")], capture_output=True,
+                           text=True, timeout=60, cwd=tmp_path)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        f"drivectl: --port/--listen: cannot serve on 127.0.0.1:{port}: Address already in use"]
+
+
+def test_open_without_a_display_says_so_in_one_line_and_keeps_serving(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "BROWSER")}
+    proc, url = start_ui(tmp_path, "--axis", "x", "--open", env=env)
+    try:
+        line = proc.stderr.readline()
+        assert line.startswith("drivectl: --open: no display here (DISPLAY and WAYLAND_DISPLAY unset)"), line
+        assert get(url)[0] == 200  # still serving
+    finally:
+        _out, err = stop_ui(proc)
+    assert proc.returncode == 0 and "closed: x Switch On Disabled" in err
+
+
+def test_open_hands_the_url_to_the_browser(tmp_path):
+    browser = tmp_path / "browser"
+    browser.write_text('#!/bin/sh\necho "browser got $1"\n')
+    browser.chmod(0o755)
+    proc, url = start_ui(tmp_path, "--axis", "x", "--open", env={**os.environ, "DISPLAY": ":99",
+                                                                   "BROWSER": str(browser)})
+    try:
+        lines = [proc.stdout.readline() for _ in range(2)]  # the Ctrl-C line, then the browser's
+        assert lines[1].strip() == f"browser got {url}", lines
+    finally:
+        _out, err = stop_ui(proc)
+    assert proc.returncode == 0, err
 
 
 def test_bad_input_is_refused_with_one_line_and_nothing_moves(tmp_path):
@@ -101,11 +205,48 @@ def test_bad_input_is_refused_with_one_line_and_nothing_moves(tmp_path):
                 ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "level",
                   "level_channel": "position", "level": "3 parsecs"}, "trigger level"),
                 ({"op": "capture", "axis": "x", "channels": ["position"], "pre": "9s"}, "longer than the ring"),
-                ({"op": "teleport"}, "unknown request")):
+                ({"op": "teleport"}, "unknown request"),
+                # every field of a move: the value, its unit and kind, the axis's soft and motion limits
+                ({"op": "move_to", "axis": "x"}, "position"),
+                ({"op": "move_to", "axis": "x", "position": "5mm/s"}, "position"),
+                ({"op": "move_by", "axis": "x", "distance": "500mm"}, "outside the soft limits"),
+                ({"op": "move_by", "axis": "x", "distance": "-0.2m"}, "outside the soft limits"),
+                ({"op": "move_to", "axis": "x", "position": "2mm", "speed": "0mm/s"}, "not within"),
+                ({"op": "move_to", "axis": "x", "position": "2mm", "speed": "5mm"}, "speed"),
+                ({"op": "move_by", "axis": "x", "distance": "1mm", "speed": "3m/s"}, "max_velocity_m_s"),
+                # a jog: its speed (unit, > 0, within max_velocity_m_s) and direction
+                ({"op": "jog", "axis": "x", "direction": 1, "speed": "fast"}, "jog speed"),
+                ({"op": "jog", "axis": "x", "direction": -1, "speed": "-5mm/s"}, "not within"),
+                ({"op": "jog", "axis": "y", "direction": 1}, "not on this machine"),
+                # a capture: channels, trigger, pre/post, and a level trigger's channel, direction, level
+                ({"op": "capture", "axis": "x", "channels": []}, "at least one channel"),
+                ({"op": "capture", "axis": "x", "channels": ["phase"]}, "channel 'phase'"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "position>0.002"},
+                 "expected now, move, fault or level"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "pre": "-1s"}, ">= 0 s"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "post": "2mm"}, "post"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "level",
+                  "level_channel": "phase", "level": "1"}, "trigger channel 'phase'"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "level",
+                  "level_channel": "velocity", "level": "3mm"}, "trigger level"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "level",
+                  "level_channel": "effort", "level": "5mm"}, "not a number"),
+                ({"op": "capture", "axis": "x", "channels": ["position"], "trigger": "level",
+                  "level_channel": "position", "level": "2mm", "direction": "sideways"}, "direction")):
             with pytest.raises(USER_ERRORS, match=expect) as exc:
                 console.command("t", msg)
             assert "\n" not in str(exc.value)
+            assert console.capture is None and console.jogs == {}  # nothing armed, nothing held
         assert console.m.status()["axes"]["x"]["move"] is None and abs(x.position - before) < 5e-6
+        # the scope's subscription: an unknown axis or channel, a window that is not > 0
+        from drivectl.tools.ui.stream import ScopeFeed
+
+        feed = ScopeFeed(console.m)
+        for args, expect in ((("w", ["position"], 5.0), "not on this machine"), (("x", ["phase"], 5.0), "'phase'"),
+                             (("x", ["position"], 0.0), "window must be > 0")):
+            with pytest.raises(ValueError, match=expect):
+                feed.subscribe(*args)
+        assert feed.axis is None
 
 
 def test_the_scope_feed_reads_only_new_samples_from_the_ring():
@@ -128,19 +269,32 @@ def test_the_scope_feed_reads_only_new_samples_from_the_ring():
     assert standstill_cycle(ring, 220) == 230
 
 
-def test_the_conductor_paces_simulated_time_to_the_wall_clock_and_never_races_ahead(tmp_path):
+def test_the_conductor_paces_simulated_time_to_its_clock_and_never_races_ahead(tmp_path):
+    """On a clock the test moves by hand: simulated time follows it a tick at a time, never runs ahead of
+    it, and after a jump (load, a long command) goes on from there instead of rushing to catch up."""
     import drivectl
     from drivectl.tools.ui.console import Conductor
 
+    now = [100.0]
     m = drivectl.connect(machine_config(), axes=["x"], fault_dir=tmp_path)
-    c = Conductor(m).start()
-    try:
-        t0, c0 = time.monotonic(), m.loop.cycle
-        time.sleep(0.3)
-        sim = (m.loop.cycle - c0) * m.loop.dt
-        wall = time.monotonic() - t0
-        assert sim <= wall + 0.02  # never ahead of the wall clock (it may lag under load)
-        assert c.call(lambda: m.loop.cycle).result(30) >= c0
+    c0 = m.loop.cycle  # lockstep: no cycle runs but those the conductor asks for
+    c = Conductor(m, tick_s=0.01, clock=lambda: now[0]).start()
+
+    def settled(at_least: int) -> int:
+        """The loop's cycles once the conductor has run ``at_least`` of them (then it waits for the clock)."""
+        while c.call(lambda: m.loop.cycle).result(60) - c0 < at_least:
+            pass
+        return c.call(lambda: m.loop.cycle).result(60) - c0
+
+    try:  # in cycles of 1 ms, ticks of 10: simulated time reaches the clock and is at most a tick ahead
+        assert settled(1) == 10  # the clock stands: one tick, no more
+        now[0] += 0.2
+        assert 200 <= settled(200) <= 210
+        got = settled(200)
+        now[0] += 10.0  # far behind (more than 0.25 s): it goes on from now, a tick at a time, no rush
+        assert settled(got + 1) == got + 10
+        now[0] += 0.1
+        assert got + 100 <= settled(got + 100) <= got + 110
     finally:
         c.stop()
         m.close()

@@ -36,12 +36,10 @@ def browser_or_skip() -> tuple[str, str]:
 
 
 def machine_config(**motion: float) -> Any:
-    """The embedded machine, x under a controller with integral action (holds in position)."""
+    """The embedded machine as it is (x under its default controller), with ``motion`` on x and y."""
     from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
 
     data = tomllib.loads(DEFAULT_CONFIG_TOML)
-    data["axes"]["x"]["controller"] = "pid-dob"
-    data["axes"]["x"]["controller_settings"] = {}
     if motion:
         for name in ("x", "y"):
             data["axes"][name]["motion"] = dict(motion)

@@ -47,7 +47,7 @@ from drivectl.controllers.runtime.run_checks import RunChecks, RunGuard
 from drivectl.controllers.runtime.safe_stop import stop_channels
 from drivectl.driver.axis import Axis, AxisError, FaultKind
 from drivectl.driver.cia402 import PowerState
-from drivectl.profiles.base import Profile, Reference, profile_name
+from drivectl.profiles.base import Profile, Reference, profile_label, profile_name
 
 #: the most cycles a run records in memory (``keep=True``: 32 bytes per cycle and axis), one hour at 1 kHz
 MAX_RUN_CYCLES = 3_600_000
@@ -170,8 +170,7 @@ def plan_run(channels: Sequence[Channel], duration: float | None = None, *, keep
     else:
         longest = max(channels, key=lambda ch: ch.profile.duration).profile
         total = longest.duration
-        source = getattr(longest, "source", None)
-        what = f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration"
+        what = f"profile {profile_label(longest)}: duration"
     n = check_run_length(total, dt, what, streamed=not keep)
     for ch in channels:
         _check_profile(ch, (n - 1) * dt)
@@ -360,8 +359,7 @@ def _check_profile(ch: Channel, until: float) -> None:
     at :data:`CHECK_RATE_HZ` a window at a time: the check's memory does not grow with the run's length."""
     lim = ch.limits
     if lim.position is not None:
-        source = getattr(ch.profile, "source", None)
-        who = f"axis {ch.axis.name}: profile {profile_name(ch.profile)}{f' ({source})' if source else ''}"
+        who = f"axis {ch.axis.name}: profile {profile_label(ch.profile)}"
         t0 = 0.0
         while True:
             span = min(until - t0, CHECK_WINDOW_S)

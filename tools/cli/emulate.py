@@ -270,5 +270,7 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
         if log is not None:
             log.stop()
         bus.shutdown()
-    print(f"emulator stopped after {drives[0].drive.syncs if drives else 0} SYNCs", file=sys.stderr)
+    d0 = drives[0].drive if drives else None
+    print(f"emulator stopped after {d0.syncs if d0 else 0} SYNCs"
+          f" ({d0.free_steps if d0 else 0} plant steps on the drive's own clock)", file=sys.stderr)
     return 0

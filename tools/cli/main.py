@@ -253,12 +253,10 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     if args.duration is not None:
         cycles = check_run_length(args.duration, cfg.cycle_s, "--duration", streamed=plan is None)
     else:  # as the run will name it
-        from drivectl.profiles.base import profile_name
+        from drivectl.profiles.base import profile_label
 
         longest = max(profiles.values(), key=lambda p: p.duration)
-        source = getattr(longest, "source", None)
-        cycles = check_run_length(longest.duration, cfg.cycle_s,
-                                  f"profile {profile_name(longest)}{f' ({source})' if source else ''}: duration",
+        cycles = check_run_length(longest.duration, cfg.cycle_s, f"profile {profile_label(longest)}: duration",
                                   streamed=plan is None)
     checks.check_outputs(args.out, cycles, 5, len(names) * (plan.repeat if plan else 1), plot=not args.no_plot)
     if plan is not None:  # the repetitions (tools/commissioning/learn.py)

@@ -8,13 +8,16 @@ random token that every request needs. Ctrl-C, SIGTERM or the page's Quit disabl
 
 from __future__ import annotations
 
+import argparse
 import ipaddress
+import os
 import signal
 import socket
 import sys
 import threading
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 LOOPBACK = "127.0.0.1"
 DEFAULT_PORT = 8765
@@ -25,6 +28,9 @@ def add_ui_parser(sub: Any) -> None:
                        description="Serve a local web console on the machine: power, jog, moves, homing, a live "
                        "scope with triggers, the trace folder and explain. Prints a URL with a token; Ctrl-C "
                        "disables every axis (verified) and leaves.")
+    # also after the command (`drivectl ui --config FILE`); SUPPRESS keeps a --config given before it
+    s.add_argument("--config", metavar="FILE", default=argparse.SUPPRESS,
+                   help="machine configuration TOML (as `drivectl --config FILE ui`)")
     s.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT}; 0: any free)")
     s.add_argument("--listen", default=LOOPBACK, metavar="ADDRESS",
                    help="address to serve on (default 127.0.0.1, this computer only; any other is reachable "
@@ -75,6 +81,37 @@ def url_of(sock: socket.socket, token: str, loopback: bool) -> str:
     return f"http://{host}:{port}/?token={token}"
 
 
+def open_browser(url: str, environ: dict[str, str] | None = None) -> str | None:
+    """``--open``: the URL handed to the default browser from a thread (a browser that blocks until it is
+    closed never holds the console up). Returns the one line to print when no browser can be opened
+    here (no display, none found); the console serves on either way."""
+    import webbrowser
+
+    env = os.environ if environ is None else environ
+    if sys.platform not in ("darwin", "win32") and not (env.get("DISPLAY") or env.get("WAYLAND_DISPLAY")):
+        port = urlsplit(url).port
+        return (f"--open: no display here (DISPLAY and WAYLAND_DISPLAY unset): open the URL above in a browser "
+                f"(from another computer: ssh -L {port}:127.0.0.1:{port} {socket.gethostname()})")
+    try:
+        browser = webbrowser.get()
+    except webbrowser.Error:
+        return "--open: no web browser found here: open the URL above in one"
+
+    def run() -> None:
+        try:
+            opened = browser.open(url)
+        except OSError as exc:
+            opened, why = False, str(exc)
+        else:
+            why = "it reported a failure"
+        if not opened:
+            print(f"drivectl: --open: the browser did not open ({why}): open the URL above in one",
+                  file=sys.stderr, flush=True)
+
+    threading.Thread(target=run, name="drivectl-ui-open", daemon=True).start()
+    return None
+
+
 def make_server(web: Any) -> Any:
     """A uvicorn server for the web console; the page's Quit ends it."""
     import uvicorn
@@ -117,6 +154,7 @@ def cmd_ui(args: Any) -> int:
         print(f"drivectl: ui needs the web console's extra ({exc.name} is missing): pip install 'drivectl[ui]'",
               file=sys.stderr)
         return 2
+    from drivectl.machine.config import load_config
     from drivectl.session import connect
     from drivectl.tools.cli.checks import check_output_folder, parse_axes
     from drivectl.tools.ui.console import Console
@@ -131,14 +169,18 @@ def cmd_ui(args: Any) -> int:
         print("drivectl: ui needs plotly (its wheel carries the plotting JavaScript): pip install 'drivectl[ui]'",
               file=sys.stderr)
         return 2
+    # the configuration first: a bad file or field is one line (exit 2) before any folder, socket or bus
+    cfg = load_config(args.config)
     axes = parse_axes(args.axis) if args.axis else None
+    for name in axes or ():
+        cfg.axis(name)
     out = check_output_folder(args.out, "--out")
     try:
         sock = bind(address, args.port)
     except ValueError as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
-    machine = connect(args.config, axes=axes, clock=args.clock, sim=args.sim, fault_dir=out)
+    machine = connect(cfg, axes=axes, clock=args.clock, sim=args.sim, fault_dir=out)
     console = Console(machine, Path(out))
     web = WebConsole(console)
     server = make_server(web)
@@ -157,10 +199,10 @@ def cmd_ui(args: Any) -> int:
                   f"{sock.getsockname()[1]} and has this URL can move the axes", file=sys.stderr)
         print(f"open {url}")
         print("Ctrl-C here (or Quit on the page) disables every axis, verified, and leaves", flush=True)
-        if args.open:
-            import webbrowser
-
-            threading.Timer(0.5, webbrowser.open, (url,)).start()
+        if args.open:  # the socket listens already: the browser's first request waits for the server
+            why = open_browser(url)
+            if why:
+                print(f"drivectl: {why}", file=sys.stderr, flush=True)
         try:
             server.run(sockets=[sock])
         except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it caught, once it has shut down

@@ -44,8 +44,9 @@ class Conductor:
     with the wall clock but never races ahead of it (under load simulated time slows down: nothing is
     late in lockstep, and a jog renewed by the browser's wall-clock timer still arrives in time)."""
 
-    def __init__(self, machine: Any, tick_s: float = 0.01):
+    def __init__(self, machine: Any, tick_s: float = 0.01, clock: Callable[[], float] = time.monotonic):
         self.m = machine
+        self._clock = clock  # the wall clock simulated time keeps pace with (a test gives its own)
         self.lockstep = machine.clock == "lockstep"
         self.tick_cycles = max(1, int(round(tick_s / machine.loop.dt)))
         self._queue: collections.deque[tuple[Callable[[], Any], Future]] = collections.deque()
@@ -75,7 +76,7 @@ class Conductor:
 
     def _main(self) -> None:
         loop = self.m.loop
-        base_t, base_c = time.monotonic(), loop.cycle
+        base_t, base_c = self._clock(), loop.cycle
         while not self._stop.is_set():
             while self._queue and not self._stop.is_set():
                 fn, fut = self._queue.popleft()
@@ -88,13 +89,13 @@ class Conductor:
                 self._wake.wait(0.05)
                 self._wake.clear()
                 continue
-            ahead = (loop.cycle - base_c) * loop.dt - (time.monotonic() - base_t)
+            ahead = (loop.cycle - base_c) * loop.dt - (self._clock() - base_t)
             if ahead > 0:
-                self._wake.wait(ahead)
+                self._wake.wait(min(ahead, 0.05))  # bounded: a clock that jumps is seen soon
                 self._wake.clear()
                 continue
             if ahead < -0.25:  # fell behind (load, a long command): go on from now, never rush to catch up
-                base_t, base_c = time.monotonic(), loop.cycle
+                base_t, base_c = self._clock(), loop.cycle
             loop.step(self.tick_cycles)
 
 
@@ -312,6 +313,8 @@ class Console:
         if not channels:
             raise CaptureError("capture: choose at least one channel")
         kind = str(msg.get("trigger") or "now")
+        if kind not in ("now", "move", "fault", "level"):  # a level comes with its unit, never as "position>0.002"
+            raise CaptureError(f"capture: trigger {kind!r}: expected now, move, fault or level")
         pre = parse_quantity(str(msg.get("pre") or "0s"), "time", what="pre")
         post = parse_quantity(str(msg.get("post") or "0s"), "time", what="post")
         if kind == "level":
@@ -334,7 +337,7 @@ class Console:
             self.capture.cancel("replaced by a new capture")
         self.capture = ax.capture(channels, trigger, pre=pre, post=post)
         self.capture_seq += 1
-        return f"{ax.name}: capture armed (trigger {self.capture._trigger_text()}, pre {pre:g} s, post {post:g} s)"
+        return f"{ax.name}: capture armed (trigger {trigger_text(self.capture)}, pre {pre:g} s, post {post:g} s)"
 
     def save_capture(self) -> list[Path]:
         """The last completed capture as trace v1 + PNG in the output folder."""
@@ -362,6 +365,23 @@ def standstill_cycle(ring: Any, since: int) -> int | None:
         return int(cyc[0])
     last = int(len(moving) - 1 - moving[::-1].argmax())  # the last step at which the reference changed
     return int(cyc[last + 1])
+
+
+def trigger_text(cap: Capture) -> str:
+    """A capture's trigger as the person typed it: a level in its channel's display unit (2 mm, not 0.002)."""
+    t = cap.trigger
+    if t.kind != "level":
+        return t.kind
+    kind = LEVEL_KIND.get(t.channel)
+    if kind == "position":
+        level = f"{t.level * 1e3:g} mm"
+    elif kind == "velocity":
+        level = f"{t.level * 1e3:g} mm/s"
+    elif t.channel in ("effort", "torque"):
+        level = f"{t.level:g} {cap.meta.get('effort_unit', '')}".rstrip()
+    else:
+        level = f"{t.level:g}"
+    return f"{t.channel} {t.direction} through {level}"
 
 
 def finite(value: Any) -> Any:

@@ -83,5 +83,8 @@ def capture_payload(cap: Any) -> dict[str, Any]:
     """A completed capture as the page plots it: time from the trigger, the chosen channels."""
     tr = cap.result()
     cols = {c: np.asarray(tr.columns[COLUMNS[c]]).tolist() for c in cap.channels if COLUMNS[c] in tr.columns}
-    return {"type": "capture", "axis": cap.axis, "trigger": cap._trigger_text(), "detail": cap.detail,
+    from drivectl.tools.ui.console import trigger_text
+
+    return {"type": "capture", "axis": cap.axis, "trigger": trigger_text(cap), "detail": cap.detail,
+            "effort_unit": tr.meta.get("effort_unit", ""),
             "t": np.asarray(tr.time).tolist(), "channels": cols}

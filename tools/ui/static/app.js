@@ -334,6 +334,16 @@ function axesLayout(groups, xtitle) {
   });
   return layout;
 }
+// "position [mm]", "effort [N]" (the axis's effort unit), "statusword"
+function label(c, effortUnit) {
+  const [g, , unit] = UNIT[c] || ["eff", 1, ""];
+  const u = unit || (g === "eff" ? effortUnit : "");
+  return `${c}${u ? " [" + u + "]" : ""}`;
+}
+function effortUnitShown() {
+  if (!ui.scope.live && ui.scope.frozen) return ui.scope.frozen.effort_unit || "";
+  return ui.status ? ui.status.axes[ui.scope.axis || ui.axes[0]].effort_unit : "";
+}
 function chartTraces(t, channels, div, effortUnit) {
   const names = Object.keys(channels);
   const groups = [];
@@ -346,15 +356,14 @@ function chartTraces(t, channels, div, effortUnit) {
     if (gi < 0) { groups.push({ key: g, title: unit || (g === "eff" ? effortUnit || "effort" : g) }); gi = groups.length - 1; }
     const y = channels[c].map((v) => (v === null ? NaN : v * scale));
     const d = decimate(t, y, t0, t1, width);
-    data.push({ x: d.x, y: d.y, name: `${c}${unit ? " [" + unit + "]" : ""}`, mode: "lines", line: { width: 1.3 },
+    data.push({ x: d.x, y: d.y, name: label(c, effortUnit), mode: "lines", line: { width: 1.3 },
       yaxis: gi === 0 ? "y" : `y${gi + 1}` });
   }
   return { data, groups };
 }
 function drawScope(t, channels, xtitle) {
   const div = $("#scope");
-  const unit = ui.status ? ui.status.axes[ui.scope.axis || ui.axes[0]].effort_unit : "";
-  const { data, groups } = chartTraces(t, channels, div, unit);
+  const { data, groups } = chartTraces(t, channels, div, effortUnitShown());
   const layout = axesLayout(groups, xtitle);
   layout.shapes = ui.scope.cursors.map((x, i) => ({ type: "line", x0: x, x1: x, yref: "paper", y0: 0, y1: 1,
     line: { color: i ? "#d62" : "#26d", dash: "dot" } }));
@@ -376,9 +385,9 @@ function readout() {
   body.append(el("tr", {}, el("th", {}, "channel"), ...idx.map((i, k) => el("th", {}, `${"AB"[k]} @ ${src.t[i].toFixed(4)} s`)),
     ...(idx.length === 2 ? [el("th", {}, `B − A (Δt ${(src.t[idx[1]] - src.t[idx[0]]).toFixed(4)} s)`)] : [])));
   for (const [c, v] of Object.entries(src.channels)) {
-    const [, scale, unit] = UNIT[c] || ["", 1, ""];
+    const [, scale] = UNIT[c] || ["", 1, ""];
     const vals = idx.map((i) => v[i] * scale);
-    body.append(el("tr", {}, el("td", {}, `${c}${unit ? " [" + unit + "]" : ""}`),
+    body.append(el("tr", {}, el("td", {}, label(c, effortUnitShown())),
       ...vals.map((x) => el("td", { class: "num" }, x.toPrecision(7))),
       ...(vals.length === 2 ? [el("td", { class: "num" }, (vals[1] - vals[0]).toPrecision(5))] : [])));
   }
@@ -433,7 +442,8 @@ async function showTrace(name) {
   const div = $("#trace-plot");
   div.removeAllListeners && div.removeAllListeners("plotly_relayout");
   div.on("plotly_relayout", (ev) => {  // zoom: decimate again for the range shown (full resolution when close)
-    if (ev["xaxis.range[0]"] !== undefined) drawTrace(+ev["xaxis.range[0]"], +ev["xaxis.range[1]"], true);
+    const range = ev["xaxis.range"] || (ev["xaxis.range[0]"] !== undefined && [ev["xaxis.range[0]"], ev["xaxis.range[1]"]]);
+    if (range) drawTrace(+range[0], +range[1], true);
     else if (ev["xaxis.autorange"]) drawTrace(t[0], t[t.length - 1]);
   });
   const body = $("#trace-summary tbody");

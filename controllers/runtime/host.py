@@ -11,6 +11,7 @@ import gc
 import os
 import sys
 import threading
+from collections.abc import Callable
 
 # the collector is the process's: the first wall-clock loop takes it, the last one gives it back
 _gc_lock = threading.Lock()
@@ -173,3 +174,48 @@ def release_others() -> None:
                 except OSError:
                     pass  # ended meanwhile
             _others_was.clear()
+
+
+class HostMeasures:
+    """What one wall-clock loop holds of the process while it runs, taken on the loop's own thread (its
+    affinity and scheduling class are the thread's) and given back, all of it, at close."""
+
+    def __init__(self) -> None:
+        self._release: list[Callable[[], None]] = []  # what to call at close, in the order taken
+
+    def take(self, dt: float, *, gil_switch: bool, gc_control: bool, cpu: int | None,
+             realtime: bool) -> dict[str, str]:
+        """Take the measures asked for; returns what was granted, as ``status()["granted"]`` shows it."""
+        granted: dict[str, str] = {}
+        if gil_switch:
+            was = take_switch(dt / 10)
+            self._release.append(release_switch)
+            granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
+                              "a thread beside the loop gives up the GIL within a tenth of a cycle")
+        take_blas()
+        self._release.append(release_blas)
+        granted["blas"] = "one BLAS thread (the loop's own): no BLAS worker spinning on the other core"
+        if gc_control:
+            take_gc()
+            self._release.append(release_gc)
+            granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
+        if cpu is not None and hasattr(os, "sched_setaffinity"):
+            try:
+                os.sched_setaffinity(0, {cpu})  # 0: the calling thread (Linux)
+                granted["cpu"] = f"pinned to CPU {cpu}"
+            except OSError as exc:
+                granted["cpu"] = f"not pinned ({exc.strerror})"
+        if realtime and hasattr(os, "sched_setscheduler"):
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+                granted["priority"] = "SCHED_FIFO 50"
+            except OSError as exc:
+                granted["priority"] = f"SCHED_FIFO not granted ({exc.strerror}); normal priority"
+            granted["others"] = take_others(threading.get_native_id())
+            self._release.append(release_others)
+        return granted
+
+    def release(self) -> None:
+        """Give back everything taken (the process's measures are counted: the last loop restores them)."""
+        while self._release:
+            self._release.pop()()

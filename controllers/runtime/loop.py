@@ -37,8 +37,6 @@ from __future__ import annotations
 import collections
 import gc
 import math
-import os
-import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -62,14 +60,7 @@ from drivectl.controllers.runtime.cycle import (
 )
 from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, ProfileRun
 from drivectl.controllers.runtime.host import (
-    release_blas,
-    release_gc,
-    release_others,
-    release_switch,
-    take_blas,
-    take_gc,
-    take_others,
-    take_switch,
+    HostMeasures,
 )
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
@@ -159,7 +150,6 @@ class ServoLoop:
         self.gc_control = gc_control
         #: shorten the interpreter's switch interval while the wall-clock loop runs (controllers/runtime/host.py)
         self.gil_switch = gil_switch
-        self._switch_taken = False
         self.cpu = cpu
         self.realtime = realtime
         self.meta = meta or {}
@@ -195,9 +185,7 @@ class ServoLoop:
         self._stalled = False
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
-        self._gc_taken = False  # this loop holds the process's collector (wall clock)
-        self._blas_taken = False  # this loop holds the process's BLAS limit (wall clock)
-        self._others_taken = False  # this loop raised the process's other threads (wall clock, realtime)
+        self._host = HostMeasures()  # what this loop holds of the process while it runs (wall clock)
         self.error: BaseException | None = None  # what killed the loop thread, if anything
         #: how a handle waits: run_until, or the owner's wrapper of it (the session routes Ctrl-C there)
         self.wait_until: Callable[[Callable[[], bool], float | None], bool] = self.run_until
@@ -242,18 +230,7 @@ class ServoLoop:
                     cap.cancel("the machine closed before it completed")
                 rt.captures.clear()
             self.flush()
-            if self._gc_taken:
-                release_gc()
-                self._gc_taken = False
-            if self._switch_taken:
-                release_switch()
-                self._switch_taken = False
-            if self._blas_taken:
-                release_blas()
-                self._blas_taken = False
-            if self._others_taken:
-                release_others()
-                self._others_taken = False
+            self._host.release()
             for rt in self._rts:
                 rt.traj.release()  # no cycle runs any more: the ruckig objects go now, not at some collection
         for rt in self._rts:
@@ -589,32 +566,8 @@ class ServoLoop:
                 pace_axes(self._channels, None)
 
     def _setup_thread(self) -> None:
-        if self.gil_switch:
-            was = take_switch(self.dt / 10)
-            self._switch_taken = True
-            self.granted["gil"] = (f"switch interval {sys.getswitchinterval() * 1e3:g} ms (was {was * 1e3:g} ms): "
-                                   "a thread beside the loop gives up the GIL within a tenth of a cycle")
-        take_blas()
-        self._blas_taken = True
-        self.granted["blas"] = "one BLAS thread (the loop's own): no BLAS worker spinning on the other core"
-        if self.gc_control:
-            take_gc()
-            self._gc_taken = True
-            self.granted["gc"] = "frozen heap, automatic collection off, young generation collected in the slack"
-        if self.cpu is not None and hasattr(os, "sched_setaffinity"):
-            try:
-                os.sched_setaffinity(0, {self.cpu})  # 0: the calling thread (Linux)
-                self.granted["cpu"] = f"pinned to CPU {self.cpu}"
-            except OSError as exc:
-                self.granted["cpu"] = f"not pinned ({exc.strerror})"
-        if self.realtime and hasattr(os, "sched_setscheduler"):
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
-                self.granted["priority"] = "SCHED_FIFO 50"
-            except OSError as exc:
-                self.granted["priority"] = f"SCHED_FIFO not granted ({exc.strerror}); normal priority"
-            self.granted["others"] = take_others(threading.get_native_id())
-            self._others_taken = True
+        self.granted.update(self._host.take(self.dt, gil_switch=self.gil_switch, gc_control=self.gc_control,
+                                            cpu=self.cpu, realtime=self.realtime))
 
     def _collect(self, pacer: Pacer, k: int) -> None:
         """A young-generation collection, only when at least half a cycle is left before the next."""

@@ -99,8 +99,9 @@ def release_blas() -> None:
 # the thread is of the normal class and a program beside the loop has its CPU, the loop waits a whole
 # scheduler slice (measured: 11-54 ms late wake-ups every few seconds at load 10, while cyclictest saw at
 # most 2 ms). The first wall-clock loop puts the process's other threads in the real-time class too, below
-# the loop (threads they start inherit it), the last one puts back what it changed; where the OS refuses
-# the real-time class, the top of the normal class (nice -20). Linux's calls take a thread id.
+# the loop, the last one puts back what it changed; where the OS refuses
+# the real-time class, the top of the normal class (nice -20). Linux's calls take a thread id. Processes
+# started from those threads do not inherit the class (SCHED_RESET_ON_FORK).
 OTHER_THREADS_FIFO = 10
 OTHER_THREADS_NICE = -20
 _others_holders = 0
@@ -118,7 +119,10 @@ def _raise_thread(tid: int) -> str:
     """Raise one normal-class thread: "fifo", "nice", or "" (it ended, or nothing was permitted)."""
     was = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority, os.getpriority(os.PRIO_PROCESS, tid))
     try:
-        os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(OTHER_THREADS_FIFO))
+        # reset on fork: a program the session's process starts (a shell command, a test's subprocess) gets
+        # the normal class, not ours
+        os.sched_setscheduler(tid, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0),
+                              os.sched_param(OTHER_THREADS_FIFO))
         _others_was[tid] = was
         return "fifo"
     except OSError as exc:

@@ -98,7 +98,7 @@ def test_relative_run_and_plot(monkeypatch, capsys, tmp_path):
     assert out[-1].startswith("wrote ") and out[-1].endswith(".png")
 
 
-@pytest.mark.xfail(strict=False, reason="fails in the full suite since 2026-11-27 (the SIGINT is not acted on: the move "
+@pytest.mark.xfail(strict=False, reason="fails in the full suite since 2026-11-27 (the SIGINT not acted on: the move "
                    "completes), passes alone; cause not found yet (session 11's closing note)")
 def test_ctrl_c_during_a_move_stops_the_axis_and_keeps_the_session(tmp_path):
     script = "enable x\nmove x 90mm speed=1mm/s &\nwait 100s\nstatus x\nexit\n"

@@ -487,10 +487,7 @@ class Machine:
         self.hardware = hardware  # tools.machine.Machine: the axes, the emulated drives, the bus
         self.loop = loop
         self.config = cfg
-        # the emulated drives run on the loop's clock: "lockstep" names the in-process delivery, which a
-        # wall-clock session paces (controllers/runtime/pacing.py)
-        self.bus = hardware.bus.replace(", lockstep)", ", paced on the wall clock)") if loop.clock == "wall" \
-            else hardware.bus
+        self.bus = hardware.bus
         self.axes: dict[str, AxisControl] = {name: AxisControl(self, rt) for name, rt in loop.axes.items()}
         self._closed = False
         self.unconfirmed: list[str] = []  # axes whose drive did not confirm the disable on close

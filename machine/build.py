@@ -227,7 +227,9 @@ def open_machine(
         return _open_remote(cfg, names, specs, bus_log)
     lockstep = Lockstep()
     channel = unique_virtual_channel(cfg.bus.channel)
-    machine = Machine({}, specs, f"virtual:{channel} (emulated CiA 402 drives, lockstep)")
+    # the emulated drives step on the SYNCs they receive; paced, those come on the wall clock
+    machine = Machine({}, specs, f"virtual:{channel} (emulated CiA 402 drives, "
+                                 f"{'paced on the wall clock' if paced else 'lockstep'})")
     emu_net = LockstepNetwork(_lockstep_end(lockstep, channel, paced), lockstep)
     machine._closers.append(emu_net.disconnect)
     master_bus = _lockstep_end(lockstep, channel, paced)

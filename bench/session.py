@@ -19,7 +19,7 @@ the loop in its own thread at 1 kHz on the wall clock, ``drivectl.connect(clock=
   the axis stands (the 200 ms dead-man interval plus the controlled stop), ms.
 
 The in-process drive runs on the loop's wall clock (as a real drive on its own): a gap past its RPDO
-deadline (the axis's own, from its physics: docs/timing.md; x 6 ms) stops the axis; the table's ``stops``
+deadline (the axis's own, from its physics: docs/timing.md; x 17 ms) stops the axis; the table's ``stops``
 column counts the faults of each run (the loop goes on cycling, so its deadline figures still cover the
 whole run). A run with a stop does not meet the targets.
 

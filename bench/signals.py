@@ -3,9 +3,9 @@
 Spawns ``drivectl trace --axis x --duration 600`` (embedded emulated drive, virtual bus) ``--runs``
 times, ``--parallel`` at once so the machine is loaded, sends SIGINT or SIGTERM (alternating) right
 after each prints its start line, and waits ``--hang-after`` seconds for it to exit. A run that
-does not exit by then counts as hung and is killed. Before the signals were read at cycle
-boundaries (controllers/runtime/interrupt.py), about 1 run in 60 hung here: the KeyboardInterrupt was raised
-inside a CAN queue's lock and the quick stop waited on that lock for ever.
+does not exit by then counts as hung and is killed. The hang it looks for: a KeyboardInterrupt raised
+inside a CAN queue's lock leaves the lock held, and the quick stop then waits on it for ever; which is why
+the signals are read at cycle boundaries (controllers/runtime/interrupt.py), between whole frames.
 
     python bench/signals.py [--runs 120] [--parallel 8] [--json]
 

@@ -31,7 +31,7 @@ thread accepts, does the handshakes and reads; frames clients send are queued (b
 * each client's output is a bounded buffer (``_MAX_PENDING`` bytes): a client that stops reading loses
   frames (counted in :attr:`overruns`, logged once per client), the others do not wait for it;
 * a connection that has not reached raw mode within ``handshake_timeout`` is told ``< error ... >`` and
-  closed (an idle ``nc`` held the only slot for ever when one client was served at a time);
+  closed (an idle client, e.g. ``nc`` left open, must not hold a slot for ever);
 * a client in raw mode that took none of the frames waiting for it for ``idle_timeout`` seconds (its
   kernel buffers full, then its own queue) is dead or hung: it is closed (None: never). A client on a
   quiet bus is not idle in this sense and stays: a resident master between runs sends nothing for minutes;

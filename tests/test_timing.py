@@ -19,7 +19,7 @@ from drivectl.driver import cia402
 
 
 def test_the_deadline_is_the_time_max_effort_takes_to_use_half_the_window():
-    # x of the embedded machine: 88.08 kg, 2000 N, 1 mm: sqrt(2 * 88.08 * 0.5 * 1e-3 / 2000) = 6.64 ms
+    # x's mass under a 2000 N limit (the embedded x has 300 N): sqrt(2 * 88.08 * 0.5 * 1e-3 / 2000) = 6.64 ms
     assert physics_deadline(88.08, 2000.0, 1e-3) == pytest.approx(6.636e-3, rel=1e-3)
     d = axis_deadline("x", 1e-3, mass=88.08, max_effort=2000.0, window=1e-3)
     assert d.source == "physics" and d.ms == 6 and d.seconds == 0.006  # whole ms, never above the physics

@@ -70,6 +70,7 @@ class Shell(cmd.Cmd):
         self.captures: list[tuple[Any, Path]] = []
         self.live = live
         self._seq = 0
+        self._background: list[Any] = []  # handles of the commands given with &, until they end
 
     # -- the frame around every command ----------------------------------------------------------------
     def say(self, line: str) -> None:
@@ -101,6 +102,11 @@ class Shell(cmd.Cmd):
         finally:
             self._collect_captures()
         return False
+
+    def moving(self) -> bool:
+        """Whether a command given with & is still under way."""
+        self._background = [h for h in self._background if not h.done]
+        return bool(self._background)
 
     def _interrupted(self) -> None:
         stops = self.m.stop_all("interrupted (Ctrl-C)")
@@ -163,6 +169,7 @@ class Shell(cmd.Cmd):
 
     def _finish(self, ax: Any, handle: Any, what: str, background: bool, timeout: float) -> None:
         if background:
+            self._background.append(handle)
             self.say(f"{ax.name}: {what} started")
             return
         t0 = self.m.loop.cycle
@@ -484,9 +491,12 @@ def run_shell(machine: Any, *, out: Path, stdin: TextIO | None = None, stdout: T
             try:
                 sh.cmdloop()
                 break
-            except KeyboardInterrupt:  # at the prompt: the session goes on
-                sh.say("^C (exit leaves the session)")
+            except KeyboardInterrupt:  # between commands: the session goes on
                 sh.intro = None
+                if sh.moving():  # a move given with & goes on between commands: Ctrl-C stops it there too
+                    sh._interrupted()
+                else:
+                    sh.say("^C (exit leaves the session)")
     finally:
         if view is not None:
             view.close()

@@ -153,31 +153,47 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
 
 def _stall(m, seconds: float) -> dict:
     """Stop this process for ``seconds`` (SIGSTOP, then SIGCONT from a helper process) with every axis
-    enabled; how many loop cycles after it resumed each axis was faulted."""
+    enabled; how long after it resumed the loop faulted an axis (the detection time against the resume)."""
     from drivectl.driver.axis import AxisError
 
     loop = m.loop
-    rts = loop.axes
     for ax in m.axes.values():
         if ax.state != "servo":
             try:
                 ax.fault_reset(2.0)
                 ax.enable(2.0)
             except AxisError as exc:  # the host too late for the deadline: refused, and said why
-                return {"fault": None, "axis": None, "cycles_after_resume": None, "deadline_ms": None,
-                        "safe": {}, "refused": str(exc)}
+                return {"fault": None, "axis": None, "ms_after_resume": None, "deadline_ms": None,
+                        "within": False, "safe": {}, "refused": str(exc)}
     n0 = len(loop.faults)
-    helper = subprocess.Popen(["sh", "-c", f"sleep 0.2; kill -STOP {os.getpid()}; sleep {seconds}; "
-                                           f"kill -CONT {os.getpid()}"])
-    before = {n: rt.servo_k for n, rt in rts.items()}
-    helper.wait()
+    # the helper stops this process, resumes it and prints when it resumed it (CLOCK_MONOTONIC, shared by the
+    # processes): the fault's own detection time, against that, is how long the loop took to catch the stall
+    helper = subprocess.Popen([sys.executable, "-c", (
+        "import os, signal, sys, time\n"
+        f"pid, s = {os.getpid()}, {seconds}\n"
+        "time.sleep(0.2); os.kill(pid, signal.SIGSTOP); time.sleep(s)\n"
+        "t = time.monotonic(); os.kill(pid, signal.SIGCONT); print(t)")], stdout=subprocess.PIPE, text=True)
+    resumed = float(helper.communicate()[0])
     m.run_until(lambda: len(loop.faults) > n0, 2.0)
     time.sleep(0.1)
     fault = loop.faults[n0] if len(loop.faults) > n0 else None
-    caught = None if fault is None else fault.cycle - before.get(fault.axis, 0)
+    after_ms = None if fault is None or fault.at is None else (fault.at - resumed) * 1e3
+    deadline_ms = loop.deadlines.get(fault.axis) * 1e3 if fault else None
     return {"fault": None if fault is None else f"{fault.kind}: {fault.detail}", "axis": fault and fault.axis,
-            "cycles_after_resume": caught, "deadline_ms": loop.deadlines.get(fault.axis) * 1e3 if fault else None,
+            "ms_after_resume": after_ms, "deadline_ms": deadline_ms,
+            "within": after_ms is not None and after_ms <= deadline_ms + 2 * loop.dt * 1e3,
             "safe": {n: ax.power.value for n, ax in m.axes.items()}}
+
+
+def stall_line(stall: dict) -> str:
+    if stall.get("refused"):
+        return f"stall of 0.5 s (SIGSTOP): not tried, no axis could be enabled: {stall['refused']}"
+    if stall["fault"] is None:
+        return "stall of 0.5 s (SIGSTOP): NOT caught"
+    within = "within" if stall["within"] else "NOT within"
+    return (f"stall of 0.5 s (SIGSTOP): {stall['fault']}; axis {stall['axis']} faulted "
+            f"{stall['ms_after_resume']:.1f} ms after the process resumed ({within} its deadline "
+            f"{stall['deadline_ms']:g} ms + 2 cycles); end states as the drives reported them {stall['safe']}")
 
 
 def main() -> None:
@@ -192,6 +208,7 @@ def main() -> None:
         r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
+            print(stall_line(r["_stall"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
@@ -204,12 +221,7 @@ def main() -> None:
         print("deadlines " + ", ".join(f"{n} {v:g} ms" for n, v in st["deadline_ms"].items()))
         for line in list(dict.fromkeys(r["_faults"]))[:10]:
             print(f"  {line}")
-        if stall.get("refused"):
-            print(f"stall of 0.5 s (SIGSTOP): not tried, no axis could be enabled: {stall['refused']}")
-            return
-        print(f"stall of 0.5 s (SIGSTOP): {stall['fault'] or 'NOT caught'}; axis {stall['axis']} faulted "
-              f"{stall['cycles_after_resume']} cycle(s) after it resumed (deadline {stall['deadline_ms']} ms); "
-              f"end states {stall['safe']}")
+        print(stall_line(stall))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {

@@ -120,21 +120,40 @@ def _raise_thread(tid: int) -> tuple[str, tuple[int, int, int] | None]:
 def _other_threads(loop_tid: int) -> Applied:
     changed: dict[int, tuple[int, int, int]] = {}
     got = set()
-    for tid in _thread_ids():
-        if tid == loop_tid:
-            continue
+    lock = threading.Lock()
+
+    def take(tid: int) -> None:
         try:
             if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                continue  # a real-time thread (another loop's) keeps its class
+                return  # a real-time thread (another loop's) keeps its class
             how, was = _raise_thread(tid)
         except OSError:
-            continue  # ESRCH: the thread ended meanwhile
-        got.add(how)
-        if was is not None:
-            changed[tid] = was
+            return  # ESRCH: the thread ended meanwhile
+        with lock:
+            got.add(how)
+            if was is not None:
+                changed[tid] = was
+
+    for tid in _thread_ids():
+        if tid != loop_tid:
+            take(tid)
+
+    # threads started later (a program's poller, a console's server) hold the GIL just the same: each is
+    # raised as it starts, on its own first call (threading's profile hook, then the thread's own profile)
+    previous = threading.getprofile()
+
+    def on_start(frame: object, event: str, arg: object) -> object:
+        sys.setprofile(previous)
+        take(threading.get_native_id())
+        return previous(frame, event, arg) if previous is not None else None
+
+    threading.setprofile(on_start)
 
     def undo() -> None:
-        for tid, (policy, prio, nice) in changed.items():
+        threading.setprofile(previous)
+        with lock:
+            put_back = list(changed.items())
+        for tid, (policy, prio, nice) in put_back:
             try:
                 os.sched_setscheduler(tid, policy, os.sched_param(prio))
                 os.setpriority(os.PRIO_PROCESS, tid, nice)

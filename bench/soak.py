@@ -19,7 +19,7 @@ resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "f
 "worst_late_ms", "latency_p99_99_ms", "moves_done", "moves_failed"} (the deliberate stall excluded).
 Target: 0 faults over 30 minutes, both ways.
 
-    python bench/soak.py --wall [--across] [--minutes 30] [--json]
+    python bench/soak.py --wall [--across] [--cycle-s 0.002] [--minutes 30] [--json]
 """
 
 from __future__ import annotations
@@ -48,9 +48,10 @@ def _burn() -> None:
         pass
 
 
-def _emulator(tmp: Path):
+def _emulator(tmp: Path, config: Path):
     """``drivectl emulate --socketcand`` in another process: (process, port)."""
-    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "emulate", "--socketcand"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(config), "emulate", "--socketcand"],
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     if not line.startswith("emulating"):
@@ -58,7 +59,8 @@ def _emulator(tmp: Path):
     return proc, int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
 
 
-def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False) -> dict:
+def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
+              cycle_s: float = 0.001) -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
     import dataclasses
     import multiprocessing
@@ -66,14 +68,16 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
     import drivectl
     from drivectl.controllers.runtime.handles import MotionFault
     from drivectl.driver.axis import AxisError
-    from drivectl.machine.config import load_config
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 
     rng = random.Random(seed)
-    cfg = load_config(None)
     emu = None
     tmp = Path(tempfile.mkdtemp(prefix="soak-wall-"))
+    config = tmp / "machine.toml"  # the embedded machine at this cycle, for both ends
+    config.write_text(DEFAULT_CONFIG_TOML.replace("cycle_s = 0.001", f"cycle_s = {cycle_s!r}", 1))
+    cfg = load_config(config)
     if across:
-        emu, port = _emulator(tmp)
+        emu, port = _emulator(tmp, config)
         cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
                                                                host="127.0.0.1", port=port))
     burner = multiprocessing.get_context("spawn").Process(target=_burn, daemon=True)
@@ -203,16 +207,21 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--wall", action="store_true", help="on the wall clock, x, y and z, beside a CPU-bound process")
     ap.add_argument("--across", action="store_true", help="--wall against drivectl emulate --socketcand")
+    ap.add_argument("--cycle-s", type=float, default=0.001,
+                    help="--wall: the servo cycle (default 0.001; longer: the way out where a host cannot keep it)")
     args = ap.parse_args()
     if args.wall:
-        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json)
+        if not (0.0005 <= args.cycle_s <= 0.01):
+            ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
+        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
             print(stall_line(r["_stall"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
-              f"{r['minutes']:g} min, x y z enabled beside one CPU-bound process; load average "
+              f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled beside one CPU-bound process; "
+              "load average "
               f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
         print(f"faults {r['faults']}, moves done {r['moves_done']}, failed {r['moves_failed']}, enables refused "
               f"{r['_refusals']} (the host too late for the deadline), status polls {r['_polls']}")

@@ -107,7 +107,8 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
                 try:
                     if ax.state != "servo":  # a fault: say so, reset, go on (enable may refuse: the host is late)
                         if ax.fault is not None:
-                            fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}")
+                            at = "" if getattr(ax.fault, "at", None) is None else f" (monotonic {ax.fault.at:.3f} s)"
+                            fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}{at}")
                         ax.fault_reset(2.0)
                         try:
                             ax.enable(2.0)

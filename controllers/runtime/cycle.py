@@ -10,10 +10,10 @@ following error, encoder plausibility, then the setpoint out). A reason to stop 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
@@ -124,6 +124,10 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
+    #: a run's settle (servo.py ``_settle``): the law holding the axis and the run's preview it installs after;
+    #: the largest error of the hold (m), None: no settle
+    settle_preview: tuple[Any, Any] | None = field(default=None, init=False, repr=False)
+    settle_max_error: float | None = field(default=None, init=False, repr=False)
     #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
     jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
@@ -137,6 +141,12 @@ class CycleFault(Exception):
         self.stop = stop
         self.fault = fault
         self.recorded = recorded
+
+
+def settle_cycles(channels: Sequence[Channel], dt: float) -> int:
+    """The cycles a run holds its axes after they are enabled, before its first reference sample: the
+    longest ``enable_settle_s`` of its axes (all start together: a contour's axes move as one)."""
+    return max(math.ceil(getattr(ch.axis, "enable_settle_s", 0.0) / dt - 1e-9) for ch in channels)
 
 
 def sample_axis(ch: Channel, k: int) -> Feedback:

@@ -124,9 +124,9 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
-    #: a run's settle (servo.py ``_settle``): the law holding the axis and the run's preview it installs after;
-    #: the largest error of the hold (m), None: no settle
-    settle_preview: tuple[Any, Any] | None = field(default=None, init=False, repr=False)
+    #: a run's settle (servo.py ``_settle``): the law holding the axis, the run's preview it installs after and
+    #: whether it does; the largest error of the hold (m), None: no settle
+    settle_preview: tuple[Any, Any, bool] | None = field(default=None, init=False, repr=False)
     settle_max_error: float | None = field(default=None, init=False, repr=False)
     #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
     jump: JumpState = field(default_factory=JumpState, init=False, repr=False)

@@ -229,9 +229,11 @@ def run_channels(
             ch.controller.reset()
             ch.settle_max_error = None
             if settle:
-                # the preview is computed now and installed after the settle (the law's cycle 0 is the run's)
+                # the preview is computed now and installed after the settle (the law's cycle 0 is the run's),
+                # where the run would prepare one (a wrapper without ``prepare`` gets none, as without a settle)
                 law = control_law(ch.controller)
-                ch.settle_preview = (law, law.preview(ch.profile, plan.t))
+                prepares = getattr(ch.controller, "prepare", None) is not None
+                ch.settle_preview = (law, law.preview(ch.profile, plan.t) if prepares else None, prepares)
             else:
                 prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
                 if prepare is not None:
@@ -395,8 +397,9 @@ def _settle(plan: RunPlan, cycles: int, pacer: Pacer | None, request: StopReques
     if pacer is not None:
         pacer.t0 += cycles * dt  # the run's cycle 0 is the slot after the settle's last
     for i, ch in enumerate(channels):
-        law, preview = ch.settle_preview
-        law.use_preview(preview)
+        law, preview, prepares = ch.settle_preview
+        if prepares:
+            law.use_preview(preview)
         ch.settle_max_error = worst[i]
         ch.following_since = None
         ch.settle_preview = None

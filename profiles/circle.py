@@ -10,7 +10,7 @@ its formula (as it does for t < 0), which is what a servo run longer than the no
 ``run_in`` > 0 (s): the path speed is brought from rest to the feed along the same circle by the
 cycloidal motion law (angular acceleration w/T (1 - cos(2 pi t/T)): continuous, zero at both ends,
 finite jerk), instead of eq (25)'s step to the full feed at t = 0, which no drive follows (y needs
-2.45 N s of momentum at once: at a 300 N peak that is ~149 um of following error whatever the law,
+2.46 N s of momentum at once: at a 300 N peak that is ~150 um of following error whatever the law,
 docs/precision.md). The ramp covers half its time's worth of angle, so the duration is
 ``revolutions * period + run_in / 2``; the circle ends at the feed as eq (25) does, and continues its
 formula after ``duration`` (it holds its start before 0). ``run_in = 0`` is eq (25) exactly

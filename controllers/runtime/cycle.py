@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
-from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.driver.cia402 import POWER_OPERATION_ENABLED, PowerState, error_text
 from drivectl.errors import InputError
 from drivectl.profiles.base import Profile, Reference, outside_soft_limits, soft_limit_text
 
@@ -157,7 +157,7 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
         raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
                          Fault(exc.kind or FaultKind.AXIS_ERROR, ch.axis.name, k, str(exc)),
                          False) from None
-    if ch.axis.power is not PowerState.OPERATION_ENABLED:
+    if ch.axis.power is not POWER_OPERATION_ENABLED:  # a module constant: read every cycle
         raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
     return fb
 

@@ -143,8 +143,9 @@ class AxisControl:
 
     # -- power -------------------------------------------------------------------------------------------
     def enable(self, timeout: float = 1.0) -> None:
-        """Operation Enabled, then hold where it stands. AxisError when the drive is in Fault
-        (fault_reset first) or does not get there within ``timeout`` s."""
+        """Operation Enabled, then hold where it stands (for the axis's ``enable_settle_ms`` before this
+        returns: a holding brake's load taken over). AxisError when the drive is in Fault (fault_reset
+        first) or does not get there within ``timeout`` s."""
         rt, loop = self._rt, self._m.loop
         if rt.state is AxisState.SERVO:
             return
@@ -168,6 +169,13 @@ class AxisControl:
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
+        if (settle := rt.ch.axis.enable_settle_s) > 0.0:
+            # a holding brake's load is taken over at rest, as a run's is before its first reference sample
+            # (the configuration's enable_settle_ms, docs/precision.md): the loop holds the axis meanwhile
+            self._m.advance(settle)
+            if rt.state is not AxisState.SERVO:
+                raise AxisError(f"axis {self.name}: left holding while it settled after enable "
+                                f"({rt.enable_failed or rt.ch.axis.power.value})")
 
     def _check_timing(self) -> None:
         """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:

@@ -394,8 +394,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         fresh = self._fresh
         if all(fresh):
             self.lost_cycles = 0
-            for i in range(len(fresh)):
-                fresh[i] = False
+            fresh[:] = self._none_fresh
             enc = self.encoder
             raw = self._raw
             (si, sj), (pi, pj) = self._at_sw, self._at_pos
@@ -415,8 +414,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         # no (complete) sample: bridge the cycle by extrapolating the last one; too many in a row is a fault
         self.lost_cycles += 1
         self.lost_total += 1
-        for i in range(len(fresh)):
-            fresh[i] = False
+        fresh[:] = self._none_fresh
         if self.lost_cycles > self.max_lost_cycles:
             raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
                             f"(limit {self.max_lost_cycles})", FaultKind.TPDO_TIMEOUT)
@@ -467,10 +465,10 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                 elif self._cw_resends and self.power is not self.master.target:
                     self._cw_resends -= 1
                     self._send_cw(cw)
-            values = (cw, self.scale.to_permille(effort), 0)
+            pick = (cw, self.scale.to_permille(effort), 0).__getitem__
             send = self.network.send_message
             for cob, codec, kinds in self._cyclic_rx:
-                send(cob, codec.pack(*[values[k] for k in kinds]))
+                send(cob, codec.pack(*map(pick, kinds)))
         except can.CanError as exc:
             raise AxisError(f"axis {self.name}: RPDO not sent: {exc}", FaultKind.BUS_ERROR) from None
 

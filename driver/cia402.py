@@ -90,6 +90,12 @@ class PowerState(Enum):
     FAULT = "Fault"
 
 
+#: the states the per-cycle paths compare against, as module constants: on Python 3.11 a member read through
+#: its class (``PowerState.FAULT``) goes through EnumType's ``__getattr__`` hook, some 0.3 us a read
+POWER_OPERATION_ENABLED = PowerState.OPERATION_ENABLED
+POWER_FAULT = PowerState.FAULT
+
+
 #: statusword (mask, value) of each state, CiA 402 table 30
 _SW_PATTERNS: tuple[tuple[int, int, PowerState], ...] = (
     (0x4F, 0x00, PowerState.NOT_READY_TO_SWITCH_ON),
@@ -123,11 +129,22 @@ SW_INTERNAL_LIMIT = 0x0800
 SW_FOLLOWS_COMMAND = 0x1000  # CST: the drive follows the target torque
 
 
-def decode_statusword(sw: int) -> PowerState:
+def _decode_bits(bits: int) -> PowerState:
     for mask, value, state in _SW_PATTERNS:
-        if sw & mask == value:
+        if bits & mask == value:
             return state
     return PowerState.NOT_READY_TO_SWITCH_ON
+
+
+#: every pattern's mask lies within 0x6F, so the state depends on those bits only: the table for each of
+#: their values, made once from _SW_PATTERNS (decoded every cycle)
+_SW_MASK = 0x6F
+assert all(mask | _SW_MASK == _SW_MASK for mask, _, _ in _SW_PATTERNS)
+_SW_DECODED = tuple(_decode_bits(bits) for bits in range(_SW_MASK + 1))
+
+
+def decode_statusword(sw: int) -> PowerState:
+    return _SW_DECODED[sw & _SW_MASK]
 
 
 def encode_statusword(state: PowerState, *, remote: bool = True, follows: bool = False,
@@ -281,7 +298,7 @@ class MasterStateMachine:
         self.target = PowerState.SWITCH_ON_DISABLED
 
     def controlword(self, state: PowerState) -> int:
-        if state is self.target and state is not PowerState.FAULT and self._held is state:
+        if state is self.target and state is not POWER_FAULT and self._held is state:
             return self._last_cw  # steady state, the per-cycle fast path
         self._held = state if state is self.target else None
         if state is PowerState.FAULT and self.reset_requested:

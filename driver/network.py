@@ -289,20 +289,26 @@ class LockstepNetwork(canopen.Network):
         notify = self.notify
         dispatch = self._dispatch
         log = self.log
-        # the lockstep bus's own inbox says when it is empty: no last poll that returns None (not when
-        # another receive was put in place of the bus's, e.g. a test's frame injector)
-        inbox = self._inbox if recv is self._bus_recv else None
+        # the lockstep bus's own inbox, popped here as its recv() pops it when it filters nothing (no call
+        # per frame, no last poll that returns None); not when another receive was put in place of the
+        # bus's (e.g. a test's frame injector) or the bus filters
+        inbox = self._inbox
+        if inbox is not None and (recv is not self._bus_recv or self.bus is None or self.bus._filters is not None):
+            inbox = None
         guard = self.frame_guard
         while True:
-            if inbox is not None and not inbox:
-                break
-            try:
-                msg = recv(0)
-            except can.CanError as exc:
-                self.recv_error = exc
-                return False
-            if msg is None:
-                break
+            if inbox is not None:
+                if not inbox:
+                    break
+                msg = inbox.popleft()
+            else:
+                try:
+                    msg = recv(0)
+                except can.CanError as exc:
+                    self.recv_error = exc
+                    return False
+                if msg is None:
+                    break
             got = True
             if log is not None:
                 log.on_message_received(msg)

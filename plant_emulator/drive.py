@@ -23,6 +23,7 @@ from typing import Any
 from drivectl.driver.cia402 import (
     DRIVE_TRANSITIONS,
     HALT_BIT,
+    POWER_OPERATION_ENABLED,
     Command,
     PowerState,
     decode_command,
@@ -134,7 +135,7 @@ class DriveModel:
     def following(self) -> bool:
         """Statusword bit 12 in cyclic synchronous torque: the drive follows the target torque
         (Operation Enabled, no halt, a mode it runs)."""
-        return (self.power is PowerState.OPERATION_ENABLED and not self._last_cw & HALT_BIT and self.mode_ok
+        return (self.power is POWER_OPERATION_ENABLED and not self._last_cw & HALT_BIT and self.mode_ok
                 and not (self.brake is not None and self.brake.engaging))
 
     def _take(self, controlword: int, setpoint: float) -> None:
@@ -143,12 +144,12 @@ class DriveModel:
         brake = self.brake
         if brake is not None:
             self.power = brake.gate(before, self.power)
-        enabled = self.power is PowerState.OPERATION_ENABLED and not controlword & HALT_BIT and self.mode_ok
+        enabled = self.power is POWER_OPERATION_ENABLED and not controlword & HALT_BIT and self.mode_ok
         self.applied = setpoint if enabled and not (brake is not None and brake.engaging) else 0.0
 
     def _apply_controlword(self, cw: int) -> None:
         power = self.power
-        if cw == self._last_cw and power is PowerState.OPERATION_ENABLED:
+        if cw == self._last_cw and power is POWER_OPERATION_ENABLED:
             return  # steady operation: the same command keeps the same state
         rising_reset = bool(cw & Command.FAULT_RESET) and not self._last_cw & Command.FAULT_RESET
         self._last_cw = cw

@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 
 from drivectl.driver import cia402
-from drivectl.driver.cia301 import HEARTBEAT_BASE, NmtState
+from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_OPERATIONAL, NmtState
 from drivectl.plant_emulator.drive_constants import (
     ERROR_RESET,
     FAULTED,
@@ -90,7 +90,7 @@ class DriveClock:
             if self._heartbeat_cycles * self.cycle_ms >= self._heartbeat_ms:
                 self._heartbeat_cycles = 0
                 self.network.send_message(HEARTBEAT_BASE + self.node_id, bytes([self.nmt]))
-        if self.nmt is not NmtState.OPERATIONAL:
+        if self.nmt is not NMT_OPERATIONAL:
             return
         now = self.time_ms
         send = self.network.send_message
@@ -133,7 +133,7 @@ class DriveClock:
 
     def _watch_deadline(self) -> None:
         """RPDO deadline monitoring (0x1400:05), one drive cycle at a time."""
-        if self._ms_since_rpdo is None or not self._rpdo_timeout_ms or self.nmt is not NmtState.OPERATIONAL:
+        if self._ms_since_rpdo is None or not self._rpdo_timeout_ms or self.nmt is not NMT_OPERATIONAL:
             return
         self._ms_since_rpdo += self.cycle_ms
         if self._ms_since_rpdo > self._rpdo_timeout_ms:

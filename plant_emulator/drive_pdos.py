@@ -5,7 +5,7 @@ pdo_rules.py)."""
 from __future__ import annotations
 
 from drivectl.driver import cia402
-from drivectl.driver.cia301 import NmtState
+from drivectl.driver.cia301 import NMT_OPERATIONAL, NmtState
 from drivectl.plant_emulator.drive_constants import (
     DIGITAL_INPUTS,
     RPDO_LONG_ERROR,
@@ -54,7 +54,7 @@ class DrivePdos:
         return lambda: self._value(index, sub)
 
     def _on_rpdo(self, can_id: int, data: bytes, timestamp: float) -> None:
-        if self.nmt is not NmtState.OPERATIONAL:
+        if self.nmt is not NMT_OPERATIONAL:
             return
         rp = self._rpdos.get(can_id)
         if rp is None:

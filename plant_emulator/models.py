@@ -537,20 +537,18 @@ class Plant:
                 if vf == 0.0:
                     lam = 0.0
                 else:
-                    if vf > 0.0:
-                        direction, stick_limit = 1.0, fc_pos
-                    else:
-                        direction, stick_limit = -1.0, fc_neg
+                    stick_limit = fc_pos if vf > 0.0 else fc_neg
                     if excess:
                         r = v / body.stribeck_velocity
                         stick_limit += excess * math.exp(-r * r)
-                    if abs(vf) <= b1 * stick_limit:
+                    hold = b1 * stick_limit
+                    if -hold <= vf <= hold:  # |vf| <= hold, without a call per substep
                         lam = -vf / b1  # holding force: the body stops (or stays) at v = 0
-                    else:
-                        lam = -direction * stick_limit
+                    else:  # against the motion: -direction * stick_limit, exactly
+                        lam = -stick_limit if vf > 0.0 else stick_limit
                 xf += b0 * lam
                 vf += b1 * lam
-                if abs(vf) < 1e-15:
+                if -1e-15 < vf < 1e-15:
                     vf = 0.0
             x, v = xf, vf
         state.s[0] = x

@@ -21,6 +21,7 @@ import math
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from operator import call
 
 import canopen
 from canopen import objectdictionary as odt
@@ -71,7 +72,7 @@ class Tpdo:
     last_ms: float = field(default=-math.inf)
 
     def pack(self) -> bytes:
-        return self.layout.codec.pack(*[g() for g in self.getters])
+        return self.layout.codec.pack(*map(call, self.getters))  # each getter called, in order (no list frame)
 
     @property
     def answers_rtr_now(self) -> bool:

@@ -10,15 +10,15 @@ following error, encoder plausibility, then the setpoint out). A reason to stop 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
 from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
-from drivectl.driver.cia402 import PowerState, error_text
+from drivectl.driver.cia402 import POWER_OPERATION_ENABLED, PowerState, error_text
 from drivectl.errors import InputError
 from drivectl.profiles.base import Profile, Reference, outside_soft_limits, soft_limit_text
 
@@ -125,6 +125,10 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
+    #: a run's settle (servo.py ``_settle``): the law holding the axis, the run's preview it installs after and
+    #: whether it does; the largest error of the hold (m), None: no settle
+    settle_preview: tuple[Any, Any, bool] | None = field(default=None, init=False, repr=False)
+    settle_max_error: float | None = field(default=None, init=False, repr=False)
     #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
     jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
@@ -140,6 +144,12 @@ class CycleFault(Exception):
         self.recorded = recorded
 
 
+def settle_cycles(channels: Sequence[Channel], dt: float) -> int:
+    """The cycles a run holds its axes after they are enabled, before its first reference sample: the
+    longest ``enable_settle_s`` of its axes (all start together: a contour's axes move as one)."""
+    return max(math.ceil(getattr(ch.axis, "enable_settle_s", 0.0) / dt - 1e-9) for ch in channels)
+
+
 def sample_axis(ch: Channel, k: int) -> Feedback:
     """This cycle's sample of an axis that must be in Operation Enabled (else CycleFault)."""
     try:
@@ -148,7 +158,7 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
         raise CycleFault(StopReason.FAULT if exc.kind else StopReason.AXIS_ERROR,
                          Fault(exc.kind or FaultKind.AXIS_ERROR, ch.axis.name, k, str(exc)),
                          False) from None
-    if ch.axis.power is not PowerState.OPERATION_ENABLED:
+    if ch.axis.power is not POWER_OPERATION_ENABLED:  # a module constant: read every cycle
         raise CycleFault(StopReason.FAULT, _left_operation(ch, k), False)
     return fb
 

@@ -54,6 +54,7 @@ from drivectl.controllers.runtime.servo import Channel, LimitError, offset_profi
 from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine import live_status
 from drivectl.profiles.base import Profile, profile_name
 from drivectl.tracefile.format import Trace, format_value
 
@@ -142,8 +143,9 @@ class AxisControl:
 
     # -- power -------------------------------------------------------------------------------------------
     def enable(self, timeout: float = 1.0) -> None:
-        """Operation Enabled, then hold where it stands. AxisError when the drive is in Fault
-        (fault_reset first) or does not get there within ``timeout`` s."""
+        """Operation Enabled, then hold where it stands (for the axis's ``enable_settle_ms`` before this
+        returns: a holding brake's load taken over). AxisError when the drive is in Fault (fault_reset
+        first) or does not get there within ``timeout`` s."""
         rt, loop = self._rt, self._m.loop
         if rt.state is AxisState.SERVO:
             return
@@ -167,6 +169,13 @@ class AxisControl:
                             f"{rt.ch.axis.power.value})")
         if rt.state is not AxisState.SERVO:
             raise AxisError(f"axis {self.name}: enable failed: {rt.enable_failed or rt.ch.axis.power.value}")
+        if (settle := rt.ch.axis.enable_settle_s) > 0.0:
+            # a holding brake's load is taken over at rest, as a run's is before its first reference sample
+            # (the configuration's enable_settle_ms, docs/precision.md): the loop holds the axis meanwhile
+            self._m.advance(settle)
+            if rt.state is not AxisState.SERVO:
+                raise AxisError(f"axis {self.name}: left holding while it settled after enable "
+                                f"({rt.enable_failed or rt.ch.axis.power.value})")
 
     def _check_timing(self) -> None:
         """The host's recent lateness (the loop's record of the last 30-60 s) against this axis's deadline:
@@ -494,6 +503,7 @@ class Machine:
         self._lockstep_bus = all(a.lockstep for a in hardware.axes.values())
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
+        self._published: live_status.Publisher | None = None
 
     def _bus(self, fn: Any, *args: Any) -> Any:
         # the in-process bus delivers frames on the sending thread: one thread on it at a time
@@ -554,6 +564,8 @@ class Machine:
         if self._closed:
             return {}
         self._closed = True
+        if self._published is not None:
+            self._published.close()
         try:
             states = self.loop.close()
         finally:
@@ -645,6 +657,10 @@ def connect(
                          fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
+        if clock == "wall":  # `drivectl status` in another process shows this loop's timing (machine/live_status.py)
+            machine._published = live_status.Publisher(live_status.path_for(cfg.bus),
+                                                       lambda: live_status.summary(machine.status()))
+            machine._published.start()
     except BaseException:
         hw.close()
         raise

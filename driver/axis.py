@@ -163,6 +163,10 @@ class Axis:
         """The limits the drive holds (0x6065/0x6066, 0x607D) in SI; none without a drive."""
         return {}
 
+    #: after Operation Enabled a run holds the axis this long before its first reference sample (a holding
+    #: brake's load taken over at rest: the configuration's ``enable_settle_ms``, controllers/runtime/servo.py)
+    enable_settle_s: float = 0.0
+
     # -- the transport ---------------------------------------------------------------------------------
     #: the cycles advance in lockstep with the master (simulated time in this process)
     lockstep: bool = True

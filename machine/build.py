@@ -222,6 +222,7 @@ def open_machine(
                                  effort_scale=EffortScale(ac.rated_effort), force_noise=noise, seed=seed + i,
                                  initial_position=start.get(name, 0.0), io=ac.emulator,
                                  derived_velocity=mapping != "full", torque_mapped=mapping != "minimal")
+            axes[name].enable_settle_s = ac.enable_settle_s
         return Machine(axes, specs, "sim (SimAxis, no bus)", deadlines=axis_deadlines(cfg, names, specs))
     if cfg.bus.interface != "virtual":
         return _open_remote(cfg, names, specs, bus_log)
@@ -298,6 +299,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            mapping=resolve_mapping(cfg, len(names)),
                            rated_effort_source=ac.rated_effort_source,
                            sdo_init=ac.sdo_init)
+        axis.enable_settle_s = ac.enable_settle_s
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)

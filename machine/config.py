@@ -49,13 +49,13 @@ max_lost_cycles = 3             # cycles in a row without TPDOs bridged (extrapo
                                 # (docs/timing.md: x 17 ms, z 17 ms); 0 = off
 last_resort = "nmt-reset"       # when neither quick stop (RPDO, SDO) nor NMT Stop is confirmed: nmt-reset | none
 [axes.x.controller_settings]
-# mbc (no settings) beats paper 004's ASMC here: the circle within 0.09 um against 0.19, standing within
+# mbc (no settings) beats paper 004's ASMC here: the circle within 0.10 um against 0.14, standing within
 # 0.06 um after a move against 4 um (paper 004's law has no integral action against the Coulomb friction;
 # docs/standstill.md), with an unmodelled Stribeck effect and noise 11 um against 38 (bench/precision.py,
 # docs/precision.md). Its du rms over
-# the circle reads 1.34 against 1.05 N per cycle only because both flip the effort by the friction
+# the circle reads 1.33 against 1.04 N per cycle only because both flip the effort by the friction
 # (93 N) at the reversals and mbc's second flip, ahead of the transport delay, is the run's last cycle
-# (over 10.5 s: 1.31 against 1.38). `bode` measures it about a constant-velocity bias (the axis slides,
+# (over 10.6 s: 1.30 against 1.37). `bode` measures it about a constant-velocity bias (the axis slides,
 # never sticks): no mode, within 0.3 dB of the model to 100 Hz. For paper 004's ASMC set
 # controller = "asmc" and uncomment:
 # law = 14                      # paper 004 gain law (11..14)
@@ -91,6 +91,9 @@ plant = "two-mass"
 controller = "mbc"              # paper 000: controller = "pid-nftsm" with the two settings below
 profile = "seed-000"
 encoder_m_per_count = 76.29e-9
+# z has a holding brake: once the drive reports Operation Enabled (released) a run holds z this long
+# before its first reference sample, the load the brake held taken over at rest (docs/precision.md)
+enable_settle_ms = 100
 [axes.z.emulator]
 # the emulated drive's holding brake (plant_emulator/brake.py): z stands while its power stage is off
 brake_release_ms = 50           # after Operation Enabled is asked for; the drive reports it once released
@@ -231,6 +234,10 @@ class AxisConfig:
     motion: Any = None
     homing: Any = None
     emulator: Any = None
+    #: after the drive reports Operation Enabled (a holding brake released), the loop holds the axis at the
+    #: run's start this long before the run's first reference sample: the load the brake held is taken
+    #: over at rest, not in the motion (controllers/runtime/servo.py ``_settle``), s
+    enable_settle_s: float = 0.0
     #: [axes.NAME] sdo_init: (index, sub-index, value) written before enable and read back (vendor objects)
     sdo_init: tuple[tuple[int, int, int], ...] = ()
     #: where rated_effort came from ("FILE: axes.NAME.rated_effort"), None: the built-in default (a drive without
@@ -322,7 +329,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
                    "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
-                   "homing", "emulator", "last_resort", "sdo_init"}
+                   "homing", "emulator", "last_resort", "sdo_init",
+                   "enable_settle_ms"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -397,6 +405,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             **_session_tables(src, k, raw),
             last_resort=_choice(src, f"{k}.last_resort", raw.get("last_resort", "nmt-reset"), LAST_RESORTS),
             sdo_init=_sdo_init(src, f"{k}.sdo_init", raw.get("sdo_init", [])),
+            enable_settle_s=_settle_ms(src, f"{k}.enable_settle_ms", raw.get("enable_settle_ms", 0)) / 1000.0,
             rated_effort_source=f"{src}: {k}.rated_effort" if "rated_effort" in raw else None,
         )
     owner: dict[int, str] = {}
@@ -462,6 +471,12 @@ def _session_tables(src: str, key: str, raw: dict[str, Any]) -> dict[str, Any]:
                 "emulator": parse_emulator_io(src, f"{key}.emulator", raw.get("emulator"))}
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+
+
+def _settle_ms(src: str, key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 10000:
+        raise ConfigError(f"{src}: {key}: expected a time in ms (0..10000), got {value!r}")
+    return float(value)
 
 
 def _count(src: str, key: str, value: Any) -> int:

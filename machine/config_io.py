@@ -85,6 +85,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
             t.add(tomlkit.comment(f'model = "{ac.plant}"  (not set: the controller believes the plant)'))
         t.add("max_lost_cycles", ac.max_lost_cycles)
         t.add("last_resort", ac.last_resort)
+        if ac.enable_settle_s:
+            t.add("enable_settle_ms", ac.enable_settle_s * 1000.0)
         if ac.sdo_init:
             t.add("sdo_init", [list(entry) for entry in ac.sdo_init])
         if ac.rpdo_timeout_ms is not None:

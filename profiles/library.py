@@ -28,9 +28,11 @@ Every kind also accepts an optional ``description`` string. Unknown keys are err
     kind = "circle"
     radius = 0.04        # m, > 0
     period = 10.0        # s per revolution, > 0
-    revolutions = 1.0    # optional (default 1), > 0; duration = revolutions * period
+    revolutions = 1.0    # optional (default 1), > 0; duration = revolutions * period + run_in_s / 2
     center = [0.0, 0.0]  # optional (default [0, 0]): [x, y] of the centre, m
     phase = 0.0          # optional (default 0), rad
+    run_in_s = 0.2       # optional (default 0: eq (25)'s step to the feed at t = 0), s: the path speed
+                         # ramps from rest to the feed along the circle (cycloidal law)
 
 ``kind = "dwell"``: stand still: ``position`` (m), ``duration`` (s, >= 0).
 
@@ -234,12 +236,13 @@ def _circle(ctx: _Ctx, tbl: dict[str, Any], prev_end: float | None) -> Profile:
     period = ctx.number(tbl, "period", gt=0)
     revolutions = ctx.number(tbl, "revolutions", gt=0, default=1.0)
     phase = ctx.number(tbl, "phase", default=0.0)
+    run_in = ctx.number(tbl, "run_in_s", ge=0, default=0.0)
     center = tbl.get("center", [0.0, 0.0])
     if not isinstance(center, list) or len(center) != 2:
         raise ctx.error("center", f"expected an array of two numbers [x, y], got {center!r}")
     cx, cy = (ctx.check_number(f"center[{i}]", c) for i, c in enumerate(center))
     center_here = cx if ctx.axis == "x" else cy
-    circle = Circle(ctx.axis, radius, period, revolutions, center_here, phase, name=ctx.name)
+    circle = Circle(ctx.axis, radius, period, revolutions, center_here, phase, run_in=run_in, name=ctx.name)
     start = circle.start_position
     if prev_end is not None and abs(start - prev_end) > CONTINUITY_TOLERANCE:
         raise ProfileError(
@@ -293,7 +296,7 @@ def _sequence(ctx: _Ctx, tbl: dict[str, Any], prev_end: float | None) -> Profile
 _Builder = Callable[[_Ctx, dict[str, Any], float | None], Profile]
 _KINDS: dict[str, tuple[_Builder, tuple[str, ...]]] = {
     "ptp": (_ptp, ("start", "target", "vmax", "amax", "jmax", "t0", "hold_until")),
-    "circle": (_circle, ("radius", "period", "revolutions", "center", "phase")),
+    "circle": (_circle, ("radius", "period", "revolutions", "center", "phase", "run_in_s")),
     "dwell": (_dwell, ("position", "duration")),
     "back-and-forth": (_back_and_forth, ("start", "distance", "speeds", "amax", "jmax", "dwell", "repeats")),
     "sequence": (_sequence, ("segments",)),

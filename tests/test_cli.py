@@ -23,7 +23,7 @@ def test_trace_axis_x_writes_trace_plot_and_summary(tmp_path, capsys):
     tr = Trace.read(tmp_path / "x.csv")
     # x runs mbc by default (paper 004's ASMC is selectable: tests/test_controllers_004.py)
     assert tr.meta["plant"] == "rigid-x" and tr.meta["controller"] == "mbc" and "law" not in tr.meta
-    assert tr.meta["stop"] == "completed" and len(tr) == 10001
+    assert tr.meta["stop"] == "completed" and len(tr) == 10101  # the library circle: 10 s + half its 0.2 s run-in
     assert (tmp_path / "x.png").stat().st_size > 10_000
     assert "max um" in out and "wrote" in out
     assert np.abs(tr.error).max() < 1e-6  # the model is the plant here: sub-micrometre

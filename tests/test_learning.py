@@ -147,10 +147,10 @@ def test_a_repetition_stopped_by_a_limit_reports_what_the_drive_said(tmp_path, c
     from drivectl.tools.cli.main import main
 
     cfg = tmp_path / "tight.toml"
-    # 0.05 um: below the circle's own 0.09 um under mbc, so the limit is reached whatever the hold between
+    # 0.01 um: far below the circle's own 0.10 um under mbc, so the limit is reached whatever the hold between
     # repetitions does (it no longer hunts: docs/standstill.md)
     cfg.write_text(DEFAULT_CONFIG_TOML.replace("following_error_m = 0.001       # window",
-                                               "following_error_m = 5e-8        # window", 1))
+                                               "following_error_m = 1e-8        # window", 1))
     rc = main(["--config", str(cfg), "trace", "--axis", "x", "--repeat", "2", "--learn", "--no-plot",
                "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err.strip().splitlines()

@@ -188,8 +188,42 @@ def test_circle_numeric_derivatives(axis: str) -> None:
         assert np.abs(np.gradient(f, dt) - df)[sl].max() < 1e-6 * scale
 
 
+@pytest.mark.parametrize("axis", ["x", "y"])
+def test_circle_run_in_ramps_the_feed_from_rest_on_the_same_circle(axis: str) -> None:
+    """run_in: the path speed rises from 0 to the feed by the cycloidal law (no velocity or acceleration
+    step), on the circle of eq (25), which it then follows late by run_in / 2."""
+    c, paper = Circle(axis, run_in=0.2), Circle(axis)
+    assert c.duration == pytest.approx(10.1)
+    dt = 1e-4
+    t = np.arange(-0.01, c.duration, dt)
+    pos, vel, acc, jerk = c.sample(t)
+    r0 = c.at(0.0)
+    assert (r0.position, r0.velocity, r0.acceleration) == (paper.start_position, 0.0, 0.0)
+    sl = slice(1, -1)
+    for f, df in ((pos, vel), (vel, acc), (acc, jerk)):
+        assert np.abs(np.gradient(f, dt) - df)[sl].max() < 1e-3 * np.abs(df).max()
+    other = Circle("y" if axis == "x" else "x", run_in=0.2).sample(t)
+    xs, ys = (pos, other[0]) if axis == "x" else (other[0], pos)
+    assert np.abs(np.hypot(xs, ys) - 0.04).max() < 1e-12  # the same circle throughout
+    feed = 0.04 * math.pi / 5
+    vx, vy = (vel, other[1]) if axis == "x" else (other[1], vel)
+    speed = np.hypot(vx, vy)
+    assert np.all(np.diff(speed[t <= 0.2]) >= -1e-15) and speed[t >= 0.2] == pytest.approx(feed)
+    assert np.abs(acc).max() < 0.26  # 2 feed / run_in on y, not a step
+    later = c.at(5.0 + 0.1)
+    assert later.position == pytest.approx(paper.at(5.0).position, abs=1e-12)
+    assert Circle(axis, run_in=0.0).sample(t)[1].tolist() == paper.sample(t)[1].tolist()  # eq (25) exactly
+
+
+def test_library_circle_runs_in_and_the_reproduction_does_not() -> None:
+    c = load_profile("circle", axis="y")
+    assert c.run_in == 0.2 and c.at(0.0).velocity == 0.0
+    assert Circle("y").at(0.0).velocity == pytest.approx(0.04 * math.pi / 5)  # bench/reproduce_004.py's
+
+
 @pytest.mark.parametrize(
     ("kwargs", "field"), [({"axis": "z"}, "axis"), ({"radius": 0}, "radius"), ({"period": -1}, "period"),
+                          ({"run_in": -0.1}, "run_in"),
                           ({"revolutions": 0}, "revolutions"), ({"phase": math.inf}, "phase")]
 )
 def test_circle_rejects_bad_arguments(kwargs: dict, field: str) -> None:
@@ -341,8 +375,9 @@ def test_library_seed000_and_circle_match_the_papers() -> None:
     assert p.move_time == pytest.approx(0.775) and p.duration == 2.5
     x, y = load_profile("circle", axis="x"), load_profile("circle", axis="y")
     assert x.start_position == pytest.approx(0.04) and y.start_position == pytest.approx(0.0)
-    assert x.at(2.5).position == pytest.approx(0.0, abs=1e-15) and y.at(2.5).position == pytest.approx(0.04)
-    assert x.duration == 10.0
+    # eq (25)'s quarter turn at 2.5 s, 0.1 s later: the library's circle runs in over 0.2 s
+    assert x.at(2.6).position == pytest.approx(0.0, abs=1e-15) and y.at(2.6).position == pytest.approx(0.04)
+    assert x.duration == pytest.approx(10.1)
     with pytest.raises(ProfileError, match=r"^profiles/library/circle\.toml: axis: .*got 'z'"):
         load_profile("circle", axis="z")
 

@@ -10,10 +10,10 @@ following error, encoder plausibility, then the setpoint out). A reason to stop 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from drivectl.controllers.base import Controller, Settings, SettingsError, param
 from drivectl.controllers.runtime.run_checks import JumpState, position_jump
@@ -98,6 +98,7 @@ class Fault:
     error_code: int | None = None  # its 0x603F, after the stop (None: could not be read)
     safe_after: dict[str, int | None] = field(default_factory=dict)  # cycles to a safe state (None: unknown)
     safe_state: dict[str, str] = field(default_factory=dict)
+    at: float | None = None  # on the wall clock: when it was detected (time.monotonic), for the record
 
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": str(self.kind), "fault_axis": self.axis, "fault_cycle": str(self.cycle)}
@@ -124,6 +125,10 @@ class Channel:
     last_position: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
+    #: a run's settle (servo.py ``_settle``): the law holding the axis, the run's preview it installs after and
+    #: whether it does; the largest error of the hold (m), None: no settle
+    settle_preview: tuple[Any, Any, bool] | None = field(default=None, init=False, repr=False)
+    settle_max_error: float | None = field(default=None, init=False, repr=False)
     #: the encoder plausibility check's memory (renewed with last_position: a run, a move of the loop)
     jump: JumpState = field(default_factory=JumpState, init=False, repr=False)
 
@@ -137,6 +142,12 @@ class CycleFault(Exception):
         self.stop = stop
         self.fault = fault
         self.recorded = recorded
+
+
+def settle_cycles(channels: Sequence[Channel], dt: float) -> int:
+    """The cycles a run holds its axes after they are enabled, before its first reference sample: the
+    longest ``enable_settle_s`` of its axes (all start together: a contour's axes move as one)."""
+    return max(math.ceil(getattr(ch.axis, "enable_settle_s", 0.0) / dt - 1e-9) for ch in channels)
 
 
 def sample_axis(ch: Channel, k: int) -> Feedback:

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from drivectl.controllers.base import Controller
-from drivectl.controllers.runtime.cycle import Fault, StopReason
+from drivectl.controllers.runtime.cycle import Fault, StopReason, settle_cycles
 from drivectl.driver.axis import Axis, Feedback
 from drivectl.tracefile.format import Trace, format_value
 
@@ -141,6 +141,9 @@ class Recording:
                 meta["stop_detail"] = out.detail
             if ch.clipped:
                 meta["effort_clipped_cycles"] = str(ch.clipped)
+            if ch.settle_max_error is not None:  # held after enabling, before the first row (servo.py _settle)
+                meta["settle_s"] = format_value(settle_cycles(plan.channels, plan.dt) * plan.dt)
+                meta["settle_max_error_m"] = format_value(ch.settle_max_error)
             for key, value in ch.axis.counters.items():
                 meta[key] = str(value - self._counters0[i].get(key, 0))
             if out.fault is not None:

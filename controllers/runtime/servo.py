@@ -39,6 +39,7 @@ from drivectl.controllers.runtime.cycle import (
     check_and_write,
     control,
     sample_axis,
+    settle_cycles,
 )
 from drivectl.controllers.runtime.interrupt import StopRequest, stop_on_signals
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
@@ -194,6 +195,7 @@ def run_channels(
     """Run several axes in lockstep, one cycle each per step, and record a trace per axis.
 
     Read top-down: :func:`plan_run` (checks, references; nothing moves), :func:`_bring_up` (enable),
+    :func:`_settle` (an axis with ``enable_settle_s`` held at the start before the first reference sample),
     :func:`_run_cycles` (the cycle, controllers/runtime/cycle.py: :func:`sample_axis` -> :func:`control` ->
     record -> :func:`check_and_write` per axis), then the ending (:func:`stop_channels` on a fault or an
     interrupt, :func:`_disable_all` on completion) and :class:`Recording` turning the arrays into traces.
@@ -222,11 +224,20 @@ def run_channels(
     channels = plan.channels
     rec = Recording(plan, stream, pace)
     try:
+        settle = settle_cycles(channels, plan.dt)
         for ch in channels:
             ch.controller.reset()
-            prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
-            if prepare is not None:
-                prepare(ch.profile, plan.t)
+            ch.settle_max_error = None
+            if settle:
+                # the preview is computed now and installed after the settle (the law's cycle 0 is the run's),
+                # where the run would prepare one (a wrapper without ``prepare`` gets none, as without a settle)
+                law = control_law(ch.controller)
+                prepares = getattr(ch.controller, "prepare", None) is not None
+                ch.settle_preview = (law, law.preview(ch.profile, plan.t) if prepares else None, prepares)
+            else:
+                prepare = getattr(ch.controller, "prepare", None)  # reference preview (controllers/base.py)
+                if prepare is not None:
+                    prepare(ch.profile, plan.t)
             ch.clipped = 0
         pacer = pace if isinstance(pace, Pacer) else Pacer(plan.dt) if pace else None
         if pacer is not None:
@@ -292,6 +303,8 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
             raise _Interrupted  # before anything is enabled: nothing moves
         out.started = True
         _bring_up(channels)
+        if (settle := settle_cycles(channels, dt)):
+            _settle(plan, settle, pacer, request)
         bar = _progress(n, progress)
         for k in range(n):
             if request.signum:
@@ -341,6 +354,55 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
         if bar is not None:
             bar.close()
     return out
+
+
+def control_law(controller: Controller) -> Controller:
+    """The law inside wrappers that add to it per run cycle (a learned correction, an excitation): what
+    holds an axis before the run."""
+    while (inner := getattr(controller, "inner", None)) is not None:
+        controller = inner
+    return controller
+
+
+def _settle(plan: RunPlan, cycles: int, pacer: Pacer | None, request: StopRequest) -> None:
+    """Hold every axis at its profile's start under its own law for ``cycles`` cycles, then install the
+    run's preview (the law's next step is the run's cycle 0). An axis with a holding brake is free from the
+    cycle its drive reports Operation Enabled: whatever load the brake held (z: the table's load-side
+    disturbance on the coupling's spring) the law takes over here, at rest, not in the run's first cycles
+    of motion. The largest error of the hold goes into the trace (``settle_max_error_m``): the transient
+    a part would see at rest before the motion. Faults are a run's (cycle 0: nothing recorded yet)."""
+    channels, dt = plan.channels, plan.dt
+    holds = [Reference(plan.refs[i][0][0], 0.0, 0.0, 0.0) for i in range(len(channels))]
+    worst = [0.0] * len(channels)
+    if pacer is not None:
+        pacer.t0 = pacer.now()  # paced from the settle's first cycle (the bring-up waited on the drives)
+    for s in range(cycles):
+        if request.signum:
+            raise _Interrupted
+        if pacer is not None:
+            pacer.wait(s)
+        for i, ch in enumerate(channels):
+            law = ch.settle_preview[0]
+            fb = sample_axis(ch, 0)
+            u = law.step(holds[i], fb)
+            lim = ch.limits.max_effort
+            if u > lim or u < -lim:
+                u = lim if u > 0 else -lim
+                law.note_applied(u)
+            worst[i] = max(worst[i], abs(holds[i].position - fb.position))
+            try:
+                check_and_write(ch, s, dt, fb.position, holds[i].position, u)
+            except CycleFault as exc:
+                raise CycleFault(exc.stop, exc.fault, False) from None  # no trace row yet
+    if pacer is not None:
+        pacer.t0 += cycles * dt  # the run's cycle 0 is the slot after the settle's last
+    for i, ch in enumerate(channels):
+        law, preview, prepares = ch.settle_preview
+        if prepares:
+            law.use_preview(preview)
+        ch.settle_max_error = worst[i]
+        ch.following_since = None
+        ch.settle_preview = None
 
 
 def _disable_all(channels: Sequence[Channel]) -> None:

@@ -54,6 +54,7 @@ from drivectl.controllers.runtime.servo import Channel, LimitError, offset_profi
 from drivectl.controllers.runtime.timing import WAYS_OUT, judge
 from drivectl.driver.axis import AxisError
 from drivectl.driver.cia402 import PowerState
+from drivectl.machine import live_status
 from drivectl.profiles.base import Profile, profile_name
 from drivectl.tracefile.format import Trace, format_value
 
@@ -502,6 +503,7 @@ class Machine:
         self._lockstep_bus = all(a.lockstep for a in hardware.axes.values())
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
+        self._published: live_status.Publisher | None = None
 
     def _bus(self, fn: Any, *args: Any) -> Any:
         # the in-process bus delivers frames on the sending thread: one thread on it at a time
@@ -562,6 +564,8 @@ class Machine:
         if self._closed:
             return {}
         self._closed = True
+        if self._published is not None:
+            self._published.close()
         try:
             states = self.loop.close()
         finally:
@@ -653,6 +657,10 @@ def connect(
                          fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
         machine = Machine(hw, loop, cfg)
         loop.start()
+        if clock == "wall":  # `drivectl status` in another process shows this loop's timing (machine/live_status.py)
+            machine._published = live_status.Publisher(live_status.path_for(cfg.bus),
+                                                       lambda: live_status.summary(machine.status()))
+            machine._published.start()
     except BaseException:
         hw.close()
         raise

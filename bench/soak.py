@@ -19,7 +19,7 @@ resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "f
 "worst_late_ms", "latency_p99_99_ms", "moves_done", "moves_failed"} (the deliberate stall excluded).
 Target: 0 faults over 30 minutes, both ways.
 
-    python bench/soak.py --wall [--across] [--minutes 30] [--json]
+    python bench/soak.py --wall [--across] [--cycle-s 0.002] [--minutes 30] [--json]
 """
 
 from __future__ import annotations
@@ -48,9 +48,10 @@ def _burn() -> None:
         pass
 
 
-def _emulator(tmp: Path):
+def _emulator(tmp: Path, config: Path):
     """``drivectl emulate --socketcand`` in another process: (process, port)."""
-    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "emulate", "--socketcand"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(config), "emulate", "--socketcand"],
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     if not line.startswith("emulating"):
@@ -58,7 +59,8 @@ def _emulator(tmp: Path):
     return proc, int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
 
 
-def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False) -> dict:
+def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
+              cycle_s: float = 0.001) -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
     import dataclasses
     import multiprocessing
@@ -66,14 +68,16 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
     import drivectl
     from drivectl.controllers.runtime.handles import MotionFault
     from drivectl.driver.axis import AxisError
-    from drivectl.machine.config import load_config
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
 
     rng = random.Random(seed)
-    cfg = load_config(None)
     emu = None
     tmp = Path(tempfile.mkdtemp(prefix="soak-wall-"))
+    config = tmp / "machine.toml"  # the embedded machine at this cycle, for both ends
+    config.write_text(DEFAULT_CONFIG_TOML.replace("cycle_s = 0.001", f"cycle_s = {cycle_s!r}", 1))
+    cfg = load_config(config)
     if across:
-        emu, port = _emulator(tmp)
+        emu, port = _emulator(tmp, config)
         cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
                                                                host="127.0.0.1", port=port))
     burner = multiprocessing.get_context("spawn").Process(target=_burn, daemon=True)
@@ -103,7 +107,8 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
                 try:
                     if ax.state != "servo":  # a fault: say so, reset, go on (enable may refuse: the host is late)
                         if ax.fault is not None:
-                            fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}")
+                            at = "" if getattr(ax.fault, "at", None) is None else f" (monotonic {ax.fault.at:.3f} s)"
+                            fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}{at}")
                         ax.fault_reset(2.0)
                         try:
                             ax.enable(2.0)
@@ -153,31 +158,47 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
 
 def _stall(m, seconds: float) -> dict:
     """Stop this process for ``seconds`` (SIGSTOP, then SIGCONT from a helper process) with every axis
-    enabled; how many loop cycles after it resumed each axis was faulted."""
+    enabled; how long after it resumed the loop faulted an axis (the detection time against the resume)."""
     from drivectl.driver.axis import AxisError
 
     loop = m.loop
-    rts = loop.axes
     for ax in m.axes.values():
         if ax.state != "servo":
             try:
                 ax.fault_reset(2.0)
                 ax.enable(2.0)
             except AxisError as exc:  # the host too late for the deadline: refused, and said why
-                return {"fault": None, "axis": None, "cycles_after_resume": None, "deadline_ms": None,
-                        "safe": {}, "refused": str(exc)}
+                return {"fault": None, "axis": None, "ms_after_resume": None, "deadline_ms": None,
+                        "within": False, "safe": {}, "refused": str(exc)}
     n0 = len(loop.faults)
-    helper = subprocess.Popen(["sh", "-c", f"sleep 0.2; kill -STOP {os.getpid()}; sleep {seconds}; "
-                                           f"kill -CONT {os.getpid()}"])
-    before = {n: rt.servo_k for n, rt in rts.items()}
-    helper.wait()
+    # the helper stops this process, resumes it and prints when it resumed it (CLOCK_MONOTONIC, shared by the
+    # processes): the fault's own detection time, against that, is how long the loop took to catch the stall
+    helper = subprocess.Popen([sys.executable, "-c", (
+        "import os, signal, sys, time\n"
+        f"pid, s = {os.getpid()}, {seconds}\n"
+        "time.sleep(0.2); os.kill(pid, signal.SIGSTOP); time.sleep(s)\n"
+        "t = time.monotonic(); os.kill(pid, signal.SIGCONT); print(t)")], stdout=subprocess.PIPE, text=True)
+    resumed = float(helper.communicate()[0])
     m.run_until(lambda: len(loop.faults) > n0, 2.0)
     time.sleep(0.1)
     fault = loop.faults[n0] if len(loop.faults) > n0 else None
-    caught = None if fault is None else fault.cycle - before.get(fault.axis, 0)
+    after_ms = None if fault is None or fault.at is None else (fault.at - resumed) * 1e3
+    deadline_ms = loop.deadlines.get(fault.axis) * 1e3 if fault else None
     return {"fault": None if fault is None else f"{fault.kind}: {fault.detail}", "axis": fault and fault.axis,
-            "cycles_after_resume": caught, "deadline_ms": loop.deadlines.get(fault.axis) * 1e3 if fault else None,
+            "ms_after_resume": after_ms, "deadline_ms": deadline_ms,
+            "within": after_ms is not None and after_ms <= deadline_ms + 2 * loop.dt * 1e3,
             "safe": {n: ax.power.value for n, ax in m.axes.items()}}
+
+
+def stall_line(stall: dict) -> str:
+    if stall.get("refused"):
+        return f"stall of 0.5 s (SIGSTOP): not tried, no axis could be enabled: {stall['refused']}"
+    if stall["fault"] is None:
+        return "stall of 0.5 s (SIGSTOP): NOT caught"
+    within = "within" if stall["within"] else "NOT within"
+    return (f"stall of 0.5 s (SIGSTOP): {stall['fault']}; axis {stall['axis']} faulted "
+            f"{stall['ms_after_resume']:.1f} ms after the process resumed ({within} its deadline "
+            f"{stall['deadline_ms']:g} ms + 2 cycles); end states as the drives reported them {stall['safe']}")
 
 
 def main() -> None:
@@ -187,15 +208,21 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--wall", action="store_true", help="on the wall clock, x, y and z, beside a CPU-bound process")
     ap.add_argument("--across", action="store_true", help="--wall against drivectl emulate --socketcand")
+    ap.add_argument("--cycle-s", type=float, default=0.001,
+                    help="--wall: the servo cycle (default 0.001; longer: the way out where a host cannot keep it)")
     args = ap.parse_args()
     if args.wall:
-        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json)
+        if not (0.0005 <= args.cycle_s <= 0.01):
+            ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
+        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
+            print(stall_line(r["_stall"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
-              f"{r['minutes']:g} min, x y z enabled beside one CPU-bound process; load average "
+              f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled beside one CPU-bound process; "
+              "load average "
               f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
         print(f"faults {r['faults']}, moves done {r['moves_done']}, failed {r['moves_failed']}, enables refused "
               f"{r['_refusals']} (the host too late for the deadline), status polls {r['_polls']}")
@@ -204,12 +231,7 @@ def main() -> None:
         print("deadlines " + ", ".join(f"{n} {v:g} ms" for n, v in st["deadline_ms"].items()))
         for line in list(dict.fromkeys(r["_faults"]))[:10]:
             print(f"  {line}")
-        if stall.get("refused"):
-            print(f"stall of 0.5 s (SIGSTOP): not tried, no axis could be enabled: {stall['refused']}")
-            return
-        print(f"stall of 0.5 s (SIGSTOP): {stall['fault'] or 'NOT caught'}; axis {stall['axis']} faulted "
-              f"{stall['cycles_after_resume']} cycle(s) after it resumed (deadline {stall['deadline_ms']} ms); "
-              f"end states {stall['safe']}")
+        print(stall_line(stall))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {

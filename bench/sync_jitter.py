@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -43,6 +44,11 @@ def _config(path: Path, channel: str, cycle_s: float, sync: str) -> None:
 
 
 def _record(channel: str, stop: threading.Event, out: list[float]) -> None:
+    """Every SYNC's kernel receive time. can-utils' candump where it is installed: a Python reader on a slow
+    host (the VM) falls behind at 1 kHz, its socket buffer overflows and dropped SYNCs read as long periods."""
+    if shutil.which("candump"):
+        _record_candump(channel, stop, out)
+        return
     bus = can.Bus(interface="socketcan", channel=channel, can_filters=[{"can_id": SYNC_COB_ID, "can_mask": 0x7FF}])
     try:
         while not stop.is_set():
@@ -51,6 +57,17 @@ def _record(channel: str, stop: threading.Event, out: list[float]) -> None:
                 out.append(msg.timestamp)  # the kernel's receive time (SO_TIMESTAMP), not when Python read it
     finally:
         bus.shutdown()
+
+
+def _record_candump(channel: str, stop: threading.Event, out: list[float]) -> None:
+    # -L: "(1700000000.123456) vcan0 080#": the kernel's timestamp of each frame, the filter in the kernel
+    proc = subprocess.Popen(["candump", "-L", f"{channel},{SYNC_COB_ID:03X}:7FF"], stdout=subprocess.PIPE, text=True)
+    reader = threading.Thread(target=lambda: out.extend(float(line[1:line.index(")")]) for line in proc.stdout
+                                                        if line.startswith("(")), daemon=True)
+    reader.start()
+    stop.wait()
+    proc.terminate()
+    reader.join(5)
 
 
 def measure(channel: str, cycle_s: float, seconds: float, sync: str) -> dict:

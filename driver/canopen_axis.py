@@ -366,8 +366,15 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                              "beside the transport's periodic one: the drive steps at the wrong rate)")
         self.state_fresh = False
         if not all(self._fresh) and not self.lockstep:
-            if self._paced:  # a deadline on the wall clock
-                self._arrived.wait(self.tpdo_timeout)
+            # only the axis that sends the SYNC clears the event at its tick: the others clear it here, then
+            # look again (a TPDO marks itself fresh before it sets the event, so none is missed between)
+            self._arrived.clear()
+            if all(self._fresh):
+                pass
+            elif self._paced:  # a deadline on the wall clock: a late drive is waited for (the loop is then late
+                # and resynchronises), a lost frame is bridged after half the drive's own deadline, in time
+                # for the next RPDO to reach the drive before the deadline passes (docs/timing.md)
+                self._arrived.wait(min(self.tpdo_timeout, 0.0005 * self.rpdo_timeout_ms))
             else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
                 wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
         self._consumed = cycle

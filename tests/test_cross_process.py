@@ -173,3 +173,78 @@ def test_scan_and_status_across_processes_read_the_nmt_state_from_the_drive(tmp_
             close_threaded(net)
     finally:
         emu.stop()
+
+
+
+def test_an_axis_that_does_not_send_the_sync_waits_for_its_own_tpdos():
+    """Several axes share one SYNC: only the first to read in a cycle sends it (and clears its TPDO event).
+    The others found their event still set from their previous cycle, so across processes they did not
+    wait for this cycle's TPDOs and bridged the cycle as lost whenever those came after the first axis's
+    (at load, four in a row faulted y and z with "no TPDO"). Here y's TPDOs are held back and handed over
+    only once y waits, as from a drive in another process: y must wait for them, not find the event set."""
+    import threading
+
+    from drivectl.machine.config import load_config as load
+
+    with open_machine(load(None), ["x", "y"]) as m:
+        x, y = m.axes["x"], m.axes["y"]
+        for ax in (x, y):
+            ax.connect()
+        x.read(), y.read()
+        held: list[tuple[int, bytes]] = []
+        set_on_entry: list[bool] = []
+
+        class Arrival(threading.Event):
+            def wait(self, timeout: float | None = None) -> bool:
+                set_on_entry.append(self.is_set())
+                for (cob, data), cb in zip(held, late, strict=True):  # the drive's frames come in meanwhile
+                    cb(cob, data, 0.0)
+                return super().wait(timeout)
+
+        y.lockstep = False  # frames come from elsewhere now: the event is what wakes y
+        y._arrived = Arrival()
+        y._arrived.set()  # as its previous cycle leaves it
+        late = [y._tpdo_callback(i) for i in range(len(y._tpdo_cob))]
+        for cob in y._tpdo_cob:  # the lockstep drive's answers to y are held, not delivered
+            y.network.subscribers[cob][:] = [lambda cob, data, ts: held.append((cob, bytes(data)))]
+        lost = y.lost_total
+        x.read()  # sends the SYNC; the drives answer
+        fb = y.read()
+        assert set_on_entry == [False], "y found its TPDO event set from its previous cycle"
+        assert y.lost_total == lost and y.state_fresh and fb is not None
+
+
+def test_every_axis_waits_for_its_own_tpdos_across_processes(tmp_path):
+    """Several axes share one SYNC: only the first to read in a cycle sends it. Each of the others used to
+    find its TPDO event still set from its previous cycle, so across processes it did not wait for this
+    cycle's TPDOs and bridged the cycle as lost whenever they came after the first axis's (at load, four
+    in a row faulted y and z with "no TPDO"). Unpaced, the master waits for every drive: no cycle of any
+    axis may be bridged."""
+    import dataclasses
+
+    import drivectl
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+
+    cfg_path = tmp_path / "emu.toml"
+    cfg_path.write_text(DEFAULT_CONFIG_TOML)
+    emu = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(cfg_path), "emulate", "--socketcand"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = emu.stdout.readline()
+        assert line.startswith("emulating"), line + emu.stderr.read()
+        port = int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
+        cfg = load_config(cfg_path)
+        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
+                                                               host="127.0.0.1", port=port))
+        with drivectl.connect(cfg, clock="lockstep") as m:
+            for ax in m.axes.values():
+                ax.enable()
+            m.loop.step(300)
+            lost = {n: rt.ch.axis.lost_total for n, rt in m.loop.axes.items()}
+            states = {n: ax.state for n, ax in m.axes.items()}
+        assert lost == {n: 0 for n in lost}, lost
+        assert set(states.values()) == {"servo"}, states
+    finally:
+        emu.send_signal(signal.SIGTERM)
+        emu.communicate(timeout=30)

@@ -6,6 +6,7 @@ own virtual channel (machine/build.py: unique_virtual_channel)."""
 from __future__ import annotations
 
 import signal
+import threading
 import tomllib
 
 import numpy as np
@@ -269,11 +270,14 @@ def test_an_exception_inside_the_context_disables_every_axis(tmp_path):
     assert m.hardware.axes["x"].network.bus is None  # the bus is shut down
 
 
-def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
+def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path, monkeypatch):
     """The threaded loop on the wall clock: outcome only (no timing asserted). The drive's RPDO deadline runs
     on the wall clock too; 50 ms here so that a loaded test machine's hiccups are not this test's subject."""
     import os
 
+    from drivectl.machine import live_status
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     cfg = config()
     object.__setattr__(cfg.axis("x"), "rpdo_timeout_ms", 50)
     was = (os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0))
@@ -287,10 +291,20 @@ def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path):
         assert {"missed_deadlines", "worst_late_ms", "stalls", "gc_collections"} <= set(st)
         assert "gc" in st["granted"] and "others" in st["granted"]
         assert "paced on the wall clock" in st["bus"]
+        published = live_status.read(cfg.bus)  # written as the loop starts, for `drivectl status` elsewhere
+        assert published["pid"] == os.getpid() and "x" in published["axes"] and "p99_99" in published["latency_ms"]
         if st["granted"]["others"].startswith("the process's other threads at SCHED_FIFO"):
             policy = os.sched_getscheduler(0)  # this (the program's) thread, below the loop, not to its children
             assert policy & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO and policy & os.SCHED_RESET_ON_FORK
+            # a thread the program starts later (a poller, a console's server) is raised as it starts
+            seen: list[int] = []
+            t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK))
+            t.start()
+            t.join()
+            assert seen == [os.SCHED_FIFO]
     assert x.power is PowerState.SWITCH_ON_DISABLED
+    assert threading.getprofile() is None  # the hook that raised new threads is gone with the last loop
+    assert live_status.read(cfg.bus) is None  # removed at close
     # the last loop put back what it changed (controllers/runtime/host.py)
     assert (os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)) == was
 

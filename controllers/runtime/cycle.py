@@ -98,6 +98,7 @@ class Fault:
     error_code: int | None = None  # its 0x603F, after the stop (None: could not be read)
     safe_after: dict[str, int | None] = field(default_factory=dict)  # cycles to a safe state (None: unknown)
     safe_state: dict[str, str] = field(default_factory=dict)
+    at: float | None = None  # on the wall clock: when it was detected (time.monotonic), for the record
 
     def meta(self) -> dict[str, str]:
         out = {"fault_kind": str(self.kind), "fault_axis": self.axis, "fault_cycle": str(self.cycle)}

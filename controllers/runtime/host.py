@@ -1,5 +1,5 @@
 """The process-wide measures a wall-clock loop takes for its thread: the garbage collector, the GIL, the
-BLAS thread pool and the priority of the process's other threads.
+BLAS thread pool, the priority of the process's other threads and transparent huge pages.
 
 They are the process's, not a loop's: the first wall-clock loop takes each, the last one gives it back
 (:class:`Shared`, one count per measure).
@@ -120,21 +120,40 @@ def _raise_thread(tid: int) -> tuple[str, tuple[int, int, int] | None]:
 def _other_threads(loop_tid: int) -> Applied:
     changed: dict[int, tuple[int, int, int]] = {}
     got = set()
-    for tid in _thread_ids():
-        if tid == loop_tid:
-            continue
+    lock = threading.Lock()
+
+    def take(tid: int) -> None:
         try:
             if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                continue  # a real-time thread (another loop's) keeps its class
+                return  # a real-time thread (another loop's) keeps its class
             how, was = _raise_thread(tid)
         except OSError:
-            continue  # ESRCH: the thread ended meanwhile
-        got.add(how)
-        if was is not None:
-            changed[tid] = was
+            return  # ESRCH: the thread ended meanwhile
+        with lock:
+            got.add(how)
+            if was is not None:
+                changed[tid] = was
+
+    for tid in _thread_ids():
+        if tid != loop_tid:
+            take(tid)
+
+    # threads started later (a program's poller, a console's server) hold the GIL just the same: each is
+    # raised as it starts, on its own first call (threading's profile hook, then the thread's own profile)
+    previous = threading.getprofile()
+
+    def on_start(frame: object, event: str, arg: object) -> object:
+        sys.setprofile(previous)
+        take(threading.get_native_id())
+        return previous(frame, event, arg) if previous is not None else None
+
+    threading.setprofile(on_start)
 
     def undo() -> None:
-        for tid, (policy, prio, nice) in changed.items():
+        threading.setprofile(previous)
+        with lock:
+            put_back = list(changed.items())
+        for tid, (policy, prio, nice) in put_back:
             try:
                 os.sched_setscheduler(tid, policy, os.sched_param(prio))
                 os.setpriority(os.PRIO_PROCESS, tid, nice)
@@ -153,10 +172,33 @@ def _other_threads(loop_tid: int) -> Applied:
     return undo, said
 
 
+# Transparent huge pages: the kernel's khugepaged collapses a process's pages into huge ones, holding the
+# process's memory map and its CPU for milliseconds, on a kernel that is not fully preemptible without
+# yielding to a real-time thread (measured with perf sched: the loop's thread runnable, and held off, for
+# 5.5 ms while khugepaged ran on its CPU). The process opts out (prctl PR_SET_THP_DISABLE); what
+# khugepaged does for other processes is the host's (docs/timing.md, doctor reports the mode).
+_PR_SET_THP_DISABLE, _PR_GET_THP_DISABLE = 41, 42
+
+
+def _no_huge_pages() -> Applied:
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        was = libc.prctl(_PR_GET_THP_DISABLE, 0, 0, 0, 0)
+        if was < 0 or libc.prctl(_PR_SET_THP_DISABLE, 1, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+    except (OSError, AttributeError) as exc:
+        return (lambda: None), f"transparent huge pages as the host has them (prctl refused: {exc})"
+    return (lambda: libc.prctl(_PR_SET_THP_DISABLE, was, 0, 0, 0)), \
+        "transparent huge pages off for this process: khugepaged does not collapse its memory under the loop"
+
+
 COLLECTOR = Shared(_collector)
 SWITCH_INTERVAL = Shared(_switch_interval)
 ONE_BLAS_THREAD = Shared(_one_blas_thread)
 OTHER_THREADS = Shared(_other_threads)
+NO_HUGE_PAGES = Shared(_no_huge_pages)
 
 
 class HostMeasures:
@@ -178,6 +220,8 @@ class HostMeasures:
         if gil_switch:
             granted["gil"] = self._hold(SWITCH_INTERVAL, dt / 10)
         granted["blas"] = self._hold(ONE_BLAS_THREAD)
+        if sys.platform.startswith("linux"):
+            granted["thp"] = self._hold(NO_HUGE_PAGES)
         if gc_control:
             granted["gc"] = self._hold(COLLECTOR)
         if cpu is not None and hasattr(os, "sched_setaffinity"):

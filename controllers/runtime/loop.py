@@ -447,6 +447,8 @@ class ServoLoop:
     def _fault(self, fault: Fault, stop: StopReason) -> None:
         """Quick stop every axis (verified), fail the moves under way, complete the fault captures."""
         why = f"fault: {fault.kind} on axis {fault.axis}: {fault.detail}"
+        if self.clock == "wall":
+            fault.at = time.monotonic()
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
             if not rt.ring.count:
                 continue

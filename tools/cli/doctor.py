@@ -50,7 +50,14 @@ def kernel() -> dict[str, Any]:
         rt = rt or Path("/sys/kernel/realtime").read_text().strip() == "1"
     except OSError:
         pass
-    return {"release": platform.release(), "version": version, "preempt_rt": rt}
+    preempt = next((m for m in ("PREEMPT_RT", "PREEMPT_DYNAMIC", "PREEMPT ") if m in version), "")
+    try:  # the mode in use is the bracketed one: "always [madvise] never"
+        text = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+        thp = text[text.index("[") + 1:text.index("]")]
+    except (OSError, ValueError):
+        thp = None
+    return {"release": platform.release(), "version": version, "preempt_rt": rt,
+            "preemption": preempt.strip() or "none or voluntary", "transparent_hugepages": thp}
 
 
 def probe(cfg: Any, names: list[str], seconds: float, cpu: int | None = None,
@@ -179,6 +186,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     print(f"host      {platform.node()}: {os.cpu_count()} CPUs, kernel {k['release']} "
           f"({'PREEMPT_RT' if k['preempt_rt'] else 'not PREEMPT_RT'}); load average "
           f"{' '.join(_loadavg())}")
+    if not k["preempt_rt"]:  # what can hold a real-time thread off on such a kernel (docs/timing.md)
+        print(f"          preemption {k['preemption']}; transparent huge pages {k['transparent_hugepages'] or '?'} "
+              "(khugepaged can hold a CPU for ms: this process opts out, others may not)")
     print(f"bus       {cfg.bus.interface}:{cfg.bus.channel}: {load.text()}")
     print(f"probe     {status['cycles']} cycles of {cfg.cycle_s * 1e3:g} ms in {args.seconds:g} s, no axis enabled; "
           f"{status['missed_deadlines']} missed, {status['skipped_cycles']} skipped")

@@ -215,6 +215,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     from drivectl.machine.build import axis_deadlines, plant_specs
 
     deadlines = axis_deadlines(cfg, names, plant_specs(cfg, names))
+    from drivectl.machine import live_status
+
+    live = live_status.read(cfg.bus)  # a session on this bus in another process: its loop's timing
     out = {}
     with open_bus_session(cfg) as session:
         net = session.network
@@ -258,6 +261,12 @@ def cmd_status(args: argparse.Namespace) -> int:
                 "last_emcy": emcy[-1].hex() if emcy else None,
                 "rpdo_deadline_ms": rpdo_deadline,
                 "deadline_ms": deadlines[name].ms,  # what connecting writes there
+                "resident_loop": None if live is None else {
+                    "pid": live["pid"], "age_s": live["age_s"], "cycles": live.get("cycles"),
+                    "latency_ms": live.get("latency_ms"), "missed_fraction": live.get("missed_fraction"),
+                    "worst_late_ms": live.get("worst_late_ms"), "stalls": live.get("stalls"),
+                    "deadline_ms": live.get("deadline_ms", {}).get(name),
+                    "state": live.get("axes", {}).get(name, {}).get("state")},
             }
     if args.json:
         print(json.dumps(out))
@@ -278,6 +287,18 @@ def cmd_status(args: argparse.Namespace) -> int:
         d = deadlines[name]
         now = "none" if s["rpdo_deadline_ms"] is None else f"{s['rpdo_deadline_ms']} ms"
         print(f"  deadline     0x1400:05 = {now}; connecting writes {d.ms} ms ({d.source}: {d.formula})")
+        r = s["resident_loop"]
+        if r is None:
+            print("  loop         no session holds this bus (none published its loop: machine/live_status.py)")
+        else:
+            lat = r["latency_ms"] or {}
+            if cfg.bus.interface == "virtual":  # an in-process bus: that session's drives are not the ones above
+                print(f"  loop         session pid {r['pid']} runs this machine on its own in-process bus (its "
+                      "emulated drives, not the ones above):")
+            print(f"  loop         session pid {r['pid']} ({r['age_s']:.1f} s ago): axis {r['state']}, deadline "
+                  f"{r['deadline_ms']} ms; {r['cycles']} cycles, missed {100 * (r['missed_fraction'] or 0):.3f} %, "
+                  f"stalls {r['stalls']}")
+            print("               lateness " + ", ".join(f"{q} {v:.2f}" for q, v in lat.items()) + " ms")
     return 0
 
 

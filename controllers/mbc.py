@@ -384,7 +384,7 @@ class Mbc(Controller):
         self._z, self._s, self._other = z_next, s_next, 1 - other
         # the command acts over [k+1, k+2]: feedback K (xref - s) on the state predicted at k+1, and the
         # disturbance over that cycle cancelled (gd)
-        u_net = ffk - float(out[na])
+        u_net = ffk - out.item(na)  # a Python float (no numpy scalar in between)
         self._u_prev = u_net
         self._fk = fk
         self._k += 1

@@ -352,16 +352,17 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         """Next cycle: SYNC (unless another axis of this bus sent it), then this drive's TPDOs."""
         if not self._connected:
             raise AxisError(f"axis {self.name}: not connected")
-        if self._cycle == self.clock.cycle:
+        clock = self.clock
+        if self._cycle == clock.cycle:
             self._fresh[:] = self._none_fresh
             if not self.lockstep:  # in lockstep nobody waits on it (on_tpdo)
                 self._arrived.clear()
             try:
-                self.clock.tick()
+                clock.tick()
             except can.CanError as exc:
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
-        self._cycle = cycle = self.clock.cycle
-        if self.clock.periodic is not None and self.clock.periodic.rogue and self._foreign is None:
+        self._cycle = cycle = clock.cycle
+        if clock.periodic is not None and clock.periodic.rogue and self._foreign is None:
             self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
                              "beside the transport's periodic one: the drive steps at the wrong rate)")
         self.state_fresh = False

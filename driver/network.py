@@ -286,7 +286,6 @@ class LockstepNetwork(canopen.Network):
         :meth:`Lockstep._deliver` calls it only when the bus has frames waiting (or cannot tell)."""
         got = False
         recv = self._recv
-        notify = self.notify
         dispatch = self._dispatch
         log = self.log
         # the lockstep bus's own inbox, popped here as its recv() pops it when it filters nothing (no call
@@ -321,7 +320,7 @@ class LockstepNetwork(canopen.Network):
                 try:
                     route = dispatch.get(can_id)
                     if route is None:
-                        notify(can_id, msg.data, msg.timestamp)
+                        self.notify(can_id, msg.data, msg.timestamp)
                         self._learn(can_id)
                     else:  # what canopen's notify does, without looking the COB-ID up again
                         data, timestamp = msg.data, msg.timestamp

@@ -515,6 +515,7 @@ class Plant:
         asym = self._asym
         coefs = self._one_coefs
         a00, a01, a10, a11, b0, b1 = coefs[1]
+        side = 1  # whose coefficients those are
         coulomb = self._coulomb[0]
         body = self.bodies[0]
         fc_pos, fc_neg = body.fc_pos, body.fc_neg
@@ -527,8 +528,12 @@ class Plant:
             if dist_a:
                 f += dist_a * math.sin(self._dist_w * (t + (i + 0.5) * h))
             if asym:
-                # direction of motion in this substep: of the velocity, or of the force from rest
-                a00, a01, a10, a11, b0, b1 = coefs[1 if (v > 0.0 or (v == 0.0 and f >= 0.0)) else -1]
+                # direction of motion in this substep: of the velocity, or of the force from rest (its
+                # coefficients unpacked again only when it changes)
+                going = 1 if (v > 0.0 or (v == 0.0 and f >= 0.0)) else -1
+                if going != side:
+                    a00, a01, a10, a11, b0, b1 = coefs[going]
+                    side = going
             xf = a00 * x + a01 * v + b0 * f
             vf = a10 * x + a11 * v + b1 * f
             if coulomb:

@@ -137,6 +137,18 @@ def test_each_cia402_transition_with_real_frames(bench, state, command, expected
     assert cia402.decode_statusword(ax.statusword) is expected
 
 
+def test_every_statusword_decodes_as_the_cia402_table_says():
+    # CiA 402 (table of the statusword's state bits), written out here, not read from cia402's own patterns:
+    # the decoder reads a table made from those once, so a wrong table must show on some statusword
+    spec = [(0x4F, 0x00, PowerState.NOT_READY_TO_SWITCH_ON), (0x4F, 0x40, PowerState.SWITCH_ON_DISABLED),
+            (0x6F, 0x21, PowerState.READY_TO_SWITCH_ON), (0x6F, 0x23, PowerState.SWITCHED_ON),
+            (0x6F, 0x27, PowerState.OPERATION_ENABLED), (0x6F, 0x07, PowerState.QUICK_STOP_ACTIVE),
+            (0x4F, 0x0F, PowerState.FAULT_REACTION_ACTIVE), (0x4F, 0x08, PowerState.FAULT)]
+    for sw in range(0x10000):
+        want = next((state for mask, value, state in spec if sw & mask == value), PowerState.NOT_READY_TO_SWITCH_ON)
+        assert cia402.decode_statusword(sw) is want, f"0x{sw:04X}"
+
+
 def test_enable_quick_stop_and_fault_reset_through_the_cycle(bench):
     drive = bench.drive(1)
     ax = bench.axis(1)

@@ -200,23 +200,22 @@ def _left_operation(ch: Channel, k: int) -> Fault:
 
 def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, FaultKind, str] | None:
     lim = ch.limits
-    name = ch.axis.name
     last, ch.last_position = ch.last_position, pos
     if last is not None and k and abs(pos - last) > lim.max_speed * dt:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
-            f"axis {name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
+            f"axis {ch.axis.name}: position jumped {(pos - last) * 1e3:+.3f} mm in one cycle at t={k * dt:.3f} s "
             f"(faster than max_speed {lim.max_speed:g} m/s: encoder?)")
     if last is None:
         ch.jump = JumpState()  # anew with last_position (a run, a move of the resident loop)
     jump = position_jump(ch.jump, pos, lim.max_jump, ch.axis.lost_cycles > 0)
     if jump is not None:
         return StopReason.FAULT, FaultKind.IMPLAUSIBLE_POSITION, (
-            f"axis {name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
+            f"axis {ch.axis.name}: position jumped {jump * 1e3:+.3f} mm beyond its motion at t={k * dt:.3f} s "
             f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
             "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):  # inline: every cycle
         return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
-            f"axis {name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
+            f"axis {ch.axis.name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
     err = ref - pos
     if err > lim.following_error or err < -lim.following_error:
         since = ch.following_since
@@ -224,12 +223,12 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             since = ch.following_since = k
         if k == 0:
             return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
-                f"axis {name}: at {pos:.6f} m but the profile starts at {ref:.6f} m; nothing moved"
+                f"axis {ch.axis.name}: at {pos:.6f} m but the profile starts at {ref:.6f} m; nothing moved"
             )
         if (k - since) * dt >= lim.following_time:
             return StopReason.FOLLOWING_ERROR, FaultKind.FOLLOWING_ERROR, (
-                f"axis {name}: following error {err * 1e6:.1f} um beyond the {lim.following_error * 1e6:.0f} um "
-                f"window at t={k * dt:.3f} s"
+                f"axis {ch.axis.name}: following error {err * 1e6:.1f} um beyond the "
+                f"{lim.following_error * 1e6:.0f} um window at t={k * dt:.3f} s"
             )
     else:
         ch.following_since = None

@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     notes["z_learned_worst"] = f"{REPEATS}th repetition of trace --repeat {REPEATS} --learn"
     rows["x_stribeck"] = run_case("x", "mbc", x_plant, x_plant, effects=(STRIBECK,), noise=NOISE, sim=sim,
                                   settings={})
-    notes["x_stribeck"] = "circle, stribeck 15 N / 2 mm/s, noise 2 N; model rigid-x"
+    notes["x_stribeck"] = "circle of eq (25), stribeck 15 N / 2 mm/s, noise 2 N; model rigid-x"
     rows["x_stribeck_explained"] = run_case("x", "mbc", x_plant, x_explained, effects=(STRIBECK,), noise=NOISE,
                                             sim=sim, settings={})
     notes["x_stribeck_explained"] = "the same; model rigid-x + stribeck (as explain writes it)"

@@ -103,6 +103,10 @@ class _Node(canopen.RemoteNode):
         return client
 
 
+def _no_wall() -> float:
+    return 0.0
+
+
 class CanopenAxis(AxisBoot, AxisStop, Axis):
     """One CiA 402 drive behind the Axis protocol."""
 
@@ -145,11 +149,14 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self._unpaced_wait = tpdo_timeout
         self._unpaced_wall: float | None = None  # the drive's SYNC tolerance bounds it (_adapt_to_peer)
         self._paced = False  # a run paced on the wall clock is under way (pace())
+        self._wall: Callable[[], float] = _no_wall
+        self._tpdo_budget = tpdo_timeout  # a paced cycle's wait for its TPDOs after its SYNC (pace())
         self.peer_rtt: float | None = None
         self.heartbeat_ms = heartbeat_ms
         if max_lost_cycles < 0:
             raise ValueError(f"axis {name}: max_lost_cycles: must be >= 0, got {max_lost_cycles}")
         self.max_lost_cycles = max_lost_cycles
+        self._lost_limit = max_lost_cycles  # what read() faults past: max_lost_cycles, or from the deadline (pace())
         if last_resort not in LAST_RESORTS:
             raise ValueError(f"axis {name}: last_resort: expected one of {', '.join(LAST_RESORTS)}, "
                              f"got {last_resort!r}")
@@ -361,6 +368,8 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                 clock.tick()
             except can.CanError as exc:
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
+            if self._paced:  # the cycle's TPDO waits, every axis's, end at one time after this SYNC
+                clock.ticked_at = self._wall()
         self._cycle = cycle = clock.cycle
         if clock.periodic is not None and clock.periodic.rogue and self._foreign is None:
             self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
@@ -373,9 +382,11 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             if all(self._fresh):
                 pass
             elif self._paced:  # a deadline on the wall clock: a late drive is waited for (the loop is then late
-                # and resynchronises), a lost frame is bridged after half the drive's own deadline, in time
-                # for the next RPDO to reach the drive before the deadline passes (docs/timing.md)
-                self._arrived.wait(min(self.tpdo_timeout, 0.0005 * self.rpdo_timeout_ms))
+                # and resynchronises) until the cycle's TPDO budget after its SYNC, shared by the bus's axes;
+                # then the cycle is bridged, and the next RPDO still reaches the drive in time (docs/timing.md)
+                left = clock.ticked_at + self._tpdo_budget - self._wall()
+                if left > 0:
+                    self._arrived.wait(left)
             else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
                 wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
         self._consumed = cycle
@@ -416,9 +427,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self.lost_cycles += 1
         self.lost_total += 1
         fresh[:] = self._none_fresh
-        if self.lost_cycles > self.max_lost_cycles:
+        if self.lost_cycles > self._lost_limit:
             raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
-                            f"(limit {self.max_lost_cycles})", FaultKind.TPDO_TIMEOUT)
+                            f"(limit {self._lost_limit})", FaultKind.TPDO_TIMEOUT)
         last = self._last
         fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * self.dt, last.velocity)
         return fb
@@ -509,6 +520,15 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         else:
             self.clock.stop_periodic()
         self._paced = wall is not None
+        self._wall = wall or _no_wall
+        self._lost_limit, self._tpdo_budget = self.max_lost_cycles, self.tpdo_timeout
+        if wall is not None and not self.lockstep and self.rpdo_timeout_ms > 0:
+            # across processes on the wall clock a cycle bridged for want of its TPDOs is mostly a late drive or
+            # host: the axis's deadline bounds it, as it bounds a late setpoint (docs/timing.md), never less
+            # than the configured count; in lockstep the frames come at once, and a missing one is lost
+            deadline = self.rpdo_timeout_ms * 1e-3
+            self._lost_limit = max(self.max_lost_cycles, int(deadline / self.dt + 1e-9) - 1)
+            self._tpdo_budget = min(self.tpdo_timeout, 0.5 * deadline)
 
     def enable_blocker(self) -> str:
         """Why the drive is not Operation Enabled, from what it reports now by SDO (statusword, 0x603F or the last

@@ -25,6 +25,8 @@ class SyncClock:
         #: who sends the SYNC now, and why the loop does where it does
         self.sync_source, self.sync_note = "loop", ""
         self.allow_periodic = True  # False: the loop always sends it (bus.sync = "loop")
+        #: when the cycle's SYNC went (the pacer's clock; paced runs across processes): the TPDO waits end from it
+        self.ticked_at = 0.0
 
     def tick(self) -> None:
         prev = self.cycle

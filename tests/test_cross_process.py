@@ -214,6 +214,43 @@ def test_an_axis_that_does_not_send_the_sync_waits_for_its_own_tpdos():
         assert y.lost_total == lost and y.state_fresh and fb is not None
 
 
+def test_paced_tpdo_waits_share_one_budget_and_the_deadline_bounds_bridging():
+    """On the wall clock across processes a cycle's TPDO waits end together, half the drive's deadline after
+    the SYNC (three axes waiting one after the other no longer add up), and a cycle bridged for want of its
+    TPDOs counts against the axis's deadline (docs/timing.md), not against the 3 of a lossless bus."""
+    import threading
+
+    from drivectl.machine.config import load_config as load
+
+    with open_machine(load(None), ["x", "y"]) as m:
+        x, y = m.axes["x"], m.axes["y"]
+        for ax in (x, y):
+            ax.connect()
+        x.read(), y.read()
+        now = [100.0]
+        waits: list[float] = []
+
+        class Arrival(threading.Event):
+            def wait(self, timeout: float | None = None) -> bool:
+                waits.append(timeout)
+                return False  # nothing came
+
+        for ax in (x, y):
+            ax.lockstep = False
+            ax._arrived = Arrival()
+            ax.pace(lambda: now[0])
+        assert y.rpdo_timeout_ms == 18 and y._lost_limit == 17 and y._tpdo_budget == pytest.approx(0.009)
+        for cob in x._tpdo_cob + y._tpdo_cob:  # the drives' answers never reach the masters
+            x.network.subscribers[cob][:] = []
+        x.read()  # SYNC at t = 100 s; x waits its budget (8.5 ms), then the clock has moved on by it
+        now[0] += 0.0085
+        y.read()  # y's budget ends 9 ms after the same SYNC: 0.5 ms left, not another 9 ms
+        assert waits == [pytest.approx(0.0085), pytest.approx(0.0005)]
+        for ax in (x, y):
+            ax.pace(None)
+        assert y._lost_limit == y.max_lost_cycles == 3
+
+
 def test_every_axis_waits_for_its_own_tpdos_across_processes(tmp_path):
     """Several axes share one SYNC: only the first to read in a cycle sends it. Each of the others used to
     find its TPDO event still set from its previous cycle, so across processes it did not wait for this

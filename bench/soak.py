@@ -217,6 +217,8 @@ def main() -> None:
         r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
+            for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
+                print(f"  {line}", file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]

@@ -147,7 +147,7 @@ class CycleFault(Exception):
 def settle_cycles(channels: Sequence[Channel], dt: float) -> int:
     """The cycles a run holds its axes after they are enabled, before its first reference sample: the
     longest ``enable_settle_s`` of its axes (all start together: a contour's axes move as one)."""
-    return max(math.ceil(getattr(ch.axis, "enable_settle_s", 0.0) / dt - 1e-9) for ch in channels)
+    return max(math.ceil(ch.axis.enable_settle_s / dt - 1e-9) for ch in channels)
 
 
 def sample_axis(ch: Channel, k: int) -> Feedback:

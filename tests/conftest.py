@@ -4,10 +4,18 @@ subscribe callbacks and only logs them)."""
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 
 import pytest
+
+# A suite started in the background by a non-interactive shell (`cmd &` in a script, CI runners) inherits
+# SIGINT ignored (POSIX), and so does every program the tests start: `drivectl shell` and `drivectl ui` then
+# never see the tests' Ctrl-C, and their tests wait out their timeouts. Caught, not ignored, here: the
+# programs the tests start get the default disposition and install their own handlers.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # tests/helpers.py
 

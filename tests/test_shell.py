@@ -73,6 +73,23 @@ def test_a_failing_command_is_one_line_and_the_session_goes_on(monkeypatch, caps
     assert out[-1].startswith("x: move to 2.0000 mm done")  # it still works after every refusal
 
 
+def test_enable_disable_and_stop_take_several_axes_and_extra_words_are_refused(monkeypatch, capsys, tmp_path):
+    monkeypatch.setattr(sys, "stdin", io.StringIO(
+        "enable x y q\nstatus\nenable x y\nmove x 1mm 2mm\njog y 1mm/s 0.1s\nstop x y\ndisable y x\n"))
+    rc = main(["shell", "--axis", "x,y", "--out", str(tmp_path)])
+    out = [ln for ln in capsys.readouterr().out.splitlines() if ln]
+    assert rc == 1
+    # a bad name among several: refused before any axis is enabled
+    assert out[0] == "error: axis 'q': not on this machine (axes: x, y)"
+    assert out[1].startswith("x: off, Switch On Disabled") and out[2].startswith("y: off, Switch On Disabled")
+    enabled = [ln for ln in out if ", holding " in ln]
+    assert [ln.split(":")[0] for ln in enabled] == ["x", "y"]
+    assert "error: usage: move AXIS POSITION [speed=V] [timeout=T] [&]" in out  # not silently a move to 1 mm
+    assert [ln.split(":")[0] for ln in out if ": stop " in ln] == ["x", "y"]
+    assert [ln for ln in out if "(the drive reports it)" in ln] == [
+        "y: Switch On Disabled (the drive reports it)", "x: Switch On Disabled (the drive reports it)"]
+
+
 def test_capture_around_a_move_is_written_with_its_plot(monkeypatch, capsys, tmp_path):
     cap = tmp_path / "cap.csv"
     rc, out, _ = shell(monkeypatch, capsys, f"enable x\ncapture x trigger=move pre=20ms post=100ms out={cap}\n"

@@ -31,13 +31,13 @@ JOG_RENEW_S = 0.05
 
 HELP = """commands (positions: m mm um nm; speeds: m/s mm/s um/s; times: s ms):
   status [AXIS]                 state, power, position, following error; loop deadlines
-  enable AXIS|all               Operation Enabled, then hold position
-  disable AXIS|all              torque off (verified)
-  fault-reset AXIS              reset a drive fault (edge on bit 7, verified)
+  enable AXIS ...|all           Operation Enabled, then hold position
+  disable AXIS ...|all          torque off (verified)
+  fault-reset AXIS ...|all      reset a drive fault (edge on bit 7, verified)
   move AXIS POS [speed=V]       jerk-limited move to POS (e.g. move x 20mm)
   move-by AXIS DIST [speed=V]   move by DIST from the current target
   jog AXIS V [T]                jog at V for T (default 1s), then a controlled stop
-  stop [AXIS]                   controlled stop (all axes when none named)
+  stop [AXIS ...]               controlled stop (all axes when none named)
   home AXIS                     home by the axis's configured method
   run AXIS PROFILE [relative]   run a profile (library name or TOML file)
   capture AXIS [channels=a,b] [trigger=now|move|fault|CHANNEL>LEVEL] [pre=T] [post=T] [out=FILE]
@@ -138,7 +138,10 @@ class Shell(cmd.Cmd):
         return False
 
     # -- arguments -----------------------------------------------------------------------------------------
-    def _args(self, arg: str, at_least: int, usage: str) -> tuple[list[str], dict[str, str], bool]:
+    def _args(self, arg: str, at_least: int, usage: str,
+              at_most: int | None = None) -> tuple[list[str], dict[str, str], bool]:
+        """The words of ``arg``: positionals, ``key=value`` options, and a trailing ``&``. Too few or too many
+        positionals (``at_most``; None: any number) is a usage error before anything is done."""
         words = shlex.split(arg)
         background = bool(words) and words[-1] == "&"
         if background:
@@ -147,7 +150,7 @@ class Shell(cmd.Cmd):
             words[-1], background = words[-1][:-1], True
         pos = [w for w in words if "=" not in w]
         opts = dict(w.split("=", 1) for w in words if "=" in w)
-        if len(pos) < at_least:
+        if len(pos) < at_least or (at_most is not None and len(pos) > at_most):
             raise ShellError(f"usage: {usage}")
         return pos, opts, background
 
@@ -159,6 +162,14 @@ class Shell(cmd.Cmd):
 
     def _axes(self, name: str) -> list[Any]:
         return list(self.m.axes.values()) if name == "all" else [self._axis(name)]
+
+    def _named(self, names: list[str]) -> list[Any]:
+        """The axes ``names`` names ("all" among them: every axis), each once, all checked before any is used."""
+        seen: dict[str, Any] = {}
+        for name in names:
+            for ax in self._axes(name):
+                seen.setdefault(ax.name, ax)
+        return list(seen.values())
 
     def _timeout(self, opts: dict[str, str]) -> float:
         return parse_quantity(opts.pop("timeout"), "time", what="timeout") if "timeout" in opts else DEFAULT_TIMEOUT_S
@@ -221,9 +232,9 @@ class Shell(cmd.Cmd):
         return False
 
     def do_enable(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "enable AXIS|all")
+        pos, opts, _ = self._args(arg, 1, "enable AXIS [AXIS ...]|all")
         self._no_more(opts, "enable")
-        for ax in self._axes(pos[0]):
+        for ax in self._named(pos):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # said here, on its own line
                 ax.enable()
@@ -233,17 +244,17 @@ class Shell(cmd.Cmd):
         return False
 
     def do_disable(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "disable AXIS|all")
+        pos, opts, _ = self._args(arg, 1, "disable AXIS [AXIS ...]|all")
         self._no_more(opts, "disable")
-        for ax in self._axes(pos[0]):
+        for ax in self._named(pos):
             ax.disable()
             self.say(f"{ax.name}: {ax.power.value} (the drive reports it)")
         return False
 
     def do_fault_reset(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "fault-reset AXIS")
+        pos, opts, _ = self._args(arg, 1, "fault-reset AXIS [AXIS ...]|all")
         self._no_more(opts, "fault-reset")
-        for ax in self._axes(pos[0]):
+        for ax in self._named(pos):
             ax.fault_reset()
             self.say(f"{ax.name}: {ax.power.value} (fault reset, verified)")
         return False
@@ -252,7 +263,7 @@ class Shell(cmd.Cmd):
         return parse_quantity(opts.pop("speed"), "velocity", what="speed") if "speed" in opts else None
 
     def do_move(self, arg: str) -> bool:
-        pos, opts, bg = self._args(arg, 2, "move AXIS POSITION [speed=V] [timeout=T] [&]")
+        pos, opts, bg = self._args(arg, 2, "move AXIS POSITION [speed=V] [timeout=T] [&]", 2)
         ax = self._axis(pos[0])
         target = parse_quantity(pos[1], "position")
         speed, timeout = self._speed(opts), self._timeout(opts)
@@ -261,7 +272,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_move_by(self, arg: str) -> bool:
-        pos, opts, bg = self._args(arg, 2, "move-by AXIS DISTANCE [speed=V] [timeout=T] [&]")
+        pos, opts, bg = self._args(arg, 2, "move-by AXIS DISTANCE [speed=V] [timeout=T] [&]", 2)
         ax = self._axis(pos[0])
         dist = parse_quantity(pos[1], "position", what="distance")
         speed, timeout = self._speed(opts), self._timeout(opts)
@@ -270,7 +281,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_jog(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 2, "jog AXIS VELOCITY [DURATION]")
+        pos, opts, _ = self._args(arg, 2, "jog AXIS VELOCITY [DURATION]", 3)
         ax = self._axis(pos[0])
         v = parse_quantity(pos[1], "velocity")
         duration = parse_quantity(pos[2], "time", what="duration") if len(pos) > 2 else 1.0
@@ -296,18 +307,20 @@ class Shell(cmd.Cmd):
         return False
 
     def do_stop(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 0, "stop [AXIS|all]")
+        pos, opts, _ = self._args(arg, 0, "stop [AXIS ...|all]")
         self._no_more(opts, "stop")
-        axes = self._axes(pos[0]) if pos else list(self.m.axes.values())
-        for ax in axes:
+        stops = []
+        for ax in self._named(pos) if pos else list(self.m.axes.values()):
             if not ax.enabled:
                 self.say(f"{ax.name}: not enabled ({ax.power.value})")
                 continue
-            self._finish(ax, ax.stop(), "stop", False, DEFAULT_TIMEOUT_S)
+            stops.append((ax, ax.stop()))  # every stop under way before the first is waited for
+        for ax, handle in stops:
+            self._finish(ax, handle, "stop", False, DEFAULT_TIMEOUT_S)
         return False
 
     def do_home(self, arg: str) -> bool:
-        pos, opts, bg = self._args(arg, 1, "home AXIS [timeout=T] [&]")
+        pos, opts, bg = self._args(arg, 1, "home AXIS [timeout=T] [&]", 1)
         ax = self._axis(pos[0])
         timeout = self._timeout(opts)
         self._no_more(opts, "home")
@@ -317,7 +330,7 @@ class Shell(cmd.Cmd):
     def do_run(self, arg: str) -> bool:
         from drivectl.profiles.library import load_profile
 
-        pos, opts, bg = self._args(arg, 2, "run AXIS PROFILE [relative] [timeout=T] [&]")
+        pos, opts, bg = self._args(arg, 2, "run AXIS PROFILE [relative] [timeout=T] [&]", 3)
         ax = self._axis(pos[0])
         extra = pos[2:]
         if extra not in ([], ["relative"]):
@@ -334,7 +347,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_capture(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "capture AXIS [channels=a,b] [trigger=T] [pre=T] [post=T] [out=FILE]")
+        pos, opts, _ = self._args(arg, 1, "capture AXIS [channels=a,b] [trigger=T] [pre=T] [post=T] [out=FILE]", 1)
         ax = self._axis(pos[0])
         kw: dict[str, Any] = {}
         if "channels" in opts:
@@ -368,7 +381,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_wait(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "wait DURATION")
+        pos, opts, _ = self._args(arg, 1, "wait DURATION", 1)
         self._no_more(opts, "wait")
         seconds = parse_quantity(pos[0], "time", what="duration")
         if not seconds >= 0:
@@ -393,7 +406,7 @@ class Shell(cmd.Cmd):
         return False
 
     def do_live(self, arg: str) -> bool:
-        pos, opts, _ = self._args(arg, 1, "live on|off [channels=position,following_error,...]")
+        pos, opts, _ = self._args(arg, 1, "live on|off [channels=position,following_error,...]", 1)
         word = pos[0]
         if word not in ("on", "off") or len(pos) > 1:
             raise ShellError("usage: live on|off [channels=position,following_error,...]")

@@ -183,6 +183,11 @@ class Axis:
         """A run paced on the wall clock ``wall`` starts (None: it ended); nothing to tell without drives
         of their own clock in this process."""
 
+    def skip(self, slots: int) -> None:
+        """The wall-clock loop woke late: ``slots`` cycle slots passed without a cycle of their own. The next
+        ``read`` belongs to the slot it runs in, so its time and a velocity derived from two positions span
+        the real interval (docs/timing.md). Nothing to do where the axis has no clock but the loop's calls."""
+
     # -- a stop's escalation beyond the quick stop by RPDO (controllers/runtime/safe_stop.py) -------------
     #: the configured last resort (LAST_RESORTS); None: the transport has none
     last_resort_action: str | None = None

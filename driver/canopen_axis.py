@@ -530,6 +530,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self._lost_limit = max(self.max_lost_cycles, int(deadline / self.dt + 1e-9) - 1)
             self._tpdo_budget = min(self.tpdo_timeout, 0.5 * deadline)
 
+    def skip(self, slots: int) -> None:
+        self.clock.skip(slots)  # the bus's axes share the clock, each says the same: set, not added
+
     def enable_blocker(self) -> str:
         """Why the drive is not Operation Enabled, from what it reports now by SDO (statusword, 0x603F or the last
         EMCY, 0x6061): driver/enable_check.py."""

@@ -27,11 +27,17 @@ class SyncClock:
         self.allow_periodic = True  # False: the loop always sends it (bus.sync = "loop")
         #: when the cycle's SYNC went (the pacer's clock; paced runs across processes): the TPDO waits end from it
         self.ticked_at = 0.0
+        self._skipped = 0  # slots the loop skipped before this tick (it woke late): the cycle counts them
+
+    def skip(self, slots: int) -> None:
+        """The next tick's SYNC is ``slots`` slots after the last one plus one: its cycle counts them, so what the
+        drive sampled there is stamped with the time it was sampled (a transport's periodic SYNC counts itself)."""
+        self._skipped = slots
 
     def tick(self) -> None:
-        prev = self.cycle
+        prev, skipped, self._skipped = self.cycle, self._skipped, 0
         if self.periodic is None:
-            self.cycle += 1  # first: what answers this SYNC belongs to the new cycle
+            self.cycle += 1 + skipped  # first: what answers this SYNC belongs to the new cycle
             self.network.send_message(self.cob_id, b"")
         else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
             seen = self.periodic.wait_beyond(self.cycle - self._periodic_base)

@@ -185,7 +185,9 @@ class DriveClock:
                 self._anchor = now
                 return
             self._free_running = True
-        n = int(gap_ms // self.cycle_ms)
+        # the cycles that passed, but the last half one: a SYNC that ends the gap runs that cycle itself, so a
+        # gap of 5.3 cycles runs 5 of them (not 5 and then the SYNC's: the plant 0.7 cycle ahead of the time)
+        n = int((gap_ms - 0.5 * self.cycle_ms) // self.cycle_ms)
         for _ in range(n):
             self._cycle(sync=False)
         self._anchor += n * self.cycle_ms / 1000.0

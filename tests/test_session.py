@@ -110,6 +110,41 @@ def test_jog_stops_in_front_of_the_soft_limit(tmp_path):
         assert x.velocity < 0
 
 
+def test_an_axis_enabled_outside_its_soft_limits_is_held_and_may_only_go_back_in(tmp_path):
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    data["axes"]["x"]["limits"]["position_m"] = [0.001, 0.1]  # x stands at 0: 1 mm below its lower limit
+    with drivectl.connect(parse_config(data, "<test>"), axes=["x"], fault_dir=tmp_path) as m:
+        x = m.axes["x"]
+        x.enable()
+        m.advance(0.5)
+        assert x.state == "servo" and x.power is PowerState.OPERATION_ENABLED  # held, no soft-limit fault
+        assert x.jog(-0.01).detail.startswith("at the soft limit already")  # further out: nothing moves
+        with pytest.raises(LimitError, match="outside the soft limits"):
+            x.move_to(-0.002)
+        x.jog(0.01)  # inward: allowed, and the ratchet follows it in
+        m.advance(0.05)
+        assert x.velocity > 0 and x.state == "servo" and x.position < 0.001
+        x.move_to(0.005).wait(5.0)  # a move's target must be inside, as always
+        assert x.state == "servo" and x.position == pytest.approx(0.005, abs=1e-5)
+
+
+def test_outside_the_soft_limits_only_a_step_further_out_is_a_fault():
+    from types import SimpleNamespace
+
+    from drivectl.controllers.runtime.cycle import OUTSIDE_SLACK_M, _further_out
+
+    lim = (0.001, 0.1)
+    ch = SimpleNamespace(outside_mark=None)
+    assert _further_out(ch, 0.0005, lim, taken=False)  # left the limits while checked: a fault at once
+    assert not _further_out(ch, 0.0, lim, taken=True) and ch.outside_mark == 0.0  # taken up outside: held
+    assert not _further_out(ch, 0.0004, lim, taken=False) and ch.outside_mark == 0.0004  # inward: the ratchet
+    assert not _further_out(ch, 0.0004 - OUTSIDE_SLACK_M * 0.9, lim, taken=False)  # standing, within the slack
+    assert _further_out(ch, 0.0004 - OUTSIDE_SLACK_M * 1.1, lim, taken=False)  # running away outward
+    ch = SimpleNamespace(outside_mark=None)
+    assert not _further_out(ch, 0.2, lim, taken=True)  # above the upper limit: the same, mirrored
+    assert _further_out(ch, 0.2 + OUTSIDE_SLACK_M * 1.1, lim, taken=False)
+
+
 def test_a_jog_renewed_while_its_dead_man_stop_is_under_way_moves_on(machine):
     x = machine.axes["x"]
     x.enable()

@@ -123,6 +123,8 @@ class Channel:
     #: first cycle of the current excursion outside the following-error window
     following_since: int | None = field(default=None, init=False, repr=False)
     last_position: float | None = field(default=None, init=False, repr=False)
+    #: taken up outside the soft limits: the innermost position since (m), None: inside, or not taken so
+    outside_mark: float | None = field(default=None, init=False, repr=False)
     #: cycles whose command was clipped to max_effort (since the run or the enable began)
     clipped: int = field(default=0, init=False, repr=False)
     #: a run's settle (servo.py ``_settle``): the law holding the axis, the run's preview it installs after and
@@ -198,6 +200,26 @@ def _left_operation(ch: Channel, k: int) -> Fault:
                  f"axis {axis.name}: the drive left Operation Enabled by itself (now {power.value})")
 
 
+#: how much further out than the innermost point it reached an axis taken up outside its soft limits may
+#: stand before that is a soft-limit fault (m): a held axis stands within microns, a runaway passes this in ms
+OUTSIDE_SLACK_M = 50e-6
+
+
+def _further_out(ch: Channel, pos: float, limits: tuple[float, float], taken: bool) -> bool:
+    """Whether ``pos``, outside the soft limits, is a soft-limit fault. An axis that leaves its limits while
+    checked is one at once. One taken up outside them (an enable, a move started there: ``taken``) is held
+    where it stands and may go back in, as a machine's soft limits allow: a fault only once it is
+    :data:`OUTSIDE_SLACK_M` further out than the innermost point it has reached (``ch.outside_mark``)."""
+    mark = pos if taken else ch.outside_mark
+    if mark is None:
+        return True
+    below = pos < limits[0]
+    if (pos < mark - OUTSIDE_SLACK_M) if below else (pos > mark + OUTSIDE_SLACK_M):
+        return True
+    ch.outside_mark = max(mark, pos) if below else min(mark, pos)  # a ratchet toward the inside
+    return False
+
+
 def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[StopReason, FaultKind, str] | None:
     lim = ch.limits
     last, ch.last_position = ch.last_position, pos
@@ -214,8 +236,11 @@ def _violation(ch: Channel, k: int, dt: float, pos: float, ref: float) -> tuple[
             f"(a second difference beyond limits.max_jump_m {lim.max_jump * 1e3:g} mm: an encoder glitch, or a "
             "violent oscillation)")
     if lim.position is not None and not (lim.position[0] <= pos <= lim.position[1]):  # inline: every cycle
-        return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
-            f"axis {ch.axis.name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
+        if _further_out(ch, pos, lim.position, taken=last is None):
+            return StopReason.SOFT_LIMIT, FaultKind.SOFT_LIMIT, (
+                f"axis {ch.axis.name}: {soft_limit_text(pos, lim.position, f' at t={k * dt:.3f} s')}")
+    elif ch.outside_mark is not None:
+        ch.outside_mark = None  # back inside: the soft limits hold again as they always do
     err = ref - pos
     if err > lim.following_error or err < -lim.following_error:
         since = ch.following_since

@@ -292,6 +292,9 @@ class ServoLoop:
                 except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
                     self.command_errors.append(f"{type(exc).__name__}: {exc}")
             k = self.cycle
+            if self._elapsed > 1:  # woke late: the axes' next samples belong to the slot this cycle runs in
+                for rt in self._rts:
+                    rt.ch.axis.skip(self._elapsed - 1)
             try:
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
@@ -317,15 +320,17 @@ class ServoLoop:
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
+        run = rt.run
         if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
             ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
             ch.controller.skipped(self._elapsed - 1)
+            if run is None:  # a move's reference is a function of time (a run's: of its recorded rows)
+                rt.traj.skip(self._elapsed - 1)
         if rt.offset:
             fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
         if rt.jog_until and k >= rt.jog_until:
             rt.jog_until = 0
             rt.traj.stop()  # dead man: the jog was not renewed
-        run = rt.run
         if run is not None:
             ref = run.next()
         else:
@@ -549,6 +554,9 @@ class ServoLoop:
                     self._on_stall(t - last)
                 behind = int((t - pacer.t0) / self.dt) - k
                 if behind > 0:  # a slot or more lost: resynchronise to the next one, no burst of stale cycles
+                    # this cycle takes the slot nearest to the time it samples at: the drives held the last
+                    # setpoint since the previous SYNC, and the references and the controllers skip as many
+                    behind = max(behind, round((t - pacer.t0) / self.dt) - k)
                     pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
                     self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind

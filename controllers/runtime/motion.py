@@ -141,6 +141,16 @@ class Trajectory:
         """A controlled stop is under way."""
         return self._moving and self._in.control_interface == ruckig.ControlInterface.Velocity
 
+    def skip(self, cycles: int) -> None:
+        """Advance over ``cycles`` cycles that got none of their own (the wall-clock loop woke late): the
+        reference stays on the time the axis lives on, where the drive held the last command meanwhile. A
+        reference left behind would find the axis ahead of it by the skipped motion, and the law would brake
+        it hard (a soak's following-error fault, docs/timing.md)."""
+        for _ in range(cycles):
+            if not self._moving:
+                return
+            self.next()
+
     # -- one cycle ---------------------------------------------------------------------------------------
     def next(self) -> Reference:
         """The reference of the next cycle."""

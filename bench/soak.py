@@ -201,6 +201,14 @@ def stall_line(stall: dict) -> str:
             f"{stall['deadline_ms']:g} ms + 2 cycles); end states as the drives reported them {stall['safe']}")
 
 
+def loop_line(st: dict) -> str:
+    """The loop's own record at the end (before the stall): what a fault may be laid at."""
+    return ("loop: lateness " + ", ".join(f"{q} {v:.2f}" for q, v in st["latency_ms"].items()) + " ms; skipped "
+            f"{st['skipped_cycles']} slots; stalls {st['stalls']}; collections {st['gc_collections']}, worst "
+            f"{st['gc_worst_ms']:.2f} ms; deadlines " + ", ".join(f"{n} {v:g}" for n, v in st["deadline_ms"].items())
+            + " ms")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes (default 10)")
@@ -220,6 +228,7 @@ def main() -> None:
             for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
                 print(f"  {line}", file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
+            print(loop_line(r["_status"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
@@ -234,6 +243,7 @@ def main() -> None:
         for line in list(dict.fromkeys(r["_faults"]))[:10]:
             print(f"  {line}")
         print(stall_line(stall))
+        print(loop_line(st))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {

@@ -4,6 +4,7 @@ verdict, a late cycle ridden out and a stall caught, on an injected clock (nothi
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -73,9 +74,11 @@ def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
     assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
 
 
-def _sim_loop(tmp_path, stall):
+def _sim_loop(tmp_path, stall, hold=None):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
-    simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept)."""
+    simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept).
+    ``hold``: {"at": slot, "held": Event, "go": Event}: the loop's thread stops in its first sleep from that
+    slot on (``held`` set) until ``go`` is set, so a test reads the ring before the loop runs past it."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.cycle import Channel
     from drivectl.controllers.runtime.loop import AxisState, ServoLoop
@@ -89,6 +92,9 @@ def _sim_loop(tmp_path, stall):
     seen = {}
 
     def sleep(s: float) -> None:
+        if hold is not None and hold["at"] is not None and loop.slots >= hold["at"]:
+            hold["held"].set()
+            hold["go"].wait(30.0)
         extra, stall["s"] = stall["s"], 0.0
         if extra:
             seen["servo_k"] = loop.axes["x"].servo_k
@@ -131,7 +137,8 @@ def test_after_a_late_wake_up_a_moving_axis_finds_its_reference_where_the_time_i
     stamped with its slot (its derived velocity spans the real interval): the law sees the axis where it
     should be, no jump, no hard brake (a soak's x faulted on a 1.3 mm following error before this)."""
     stall = {"s": 0.0}
-    m, loop, seen = _sim_loop(tmp_path, stall)
+    hold = {"at": None, "held": threading.Event(), "go": threading.Event()}
+    m, loop, seen = _sim_loop(tmp_path, stall, hold)
     try:
         rt = loop.axes["x"]
         loop.submit(lambda: rt.traj.move_to(0.08, 0.05))
@@ -140,16 +147,17 @@ def test_after_a_late_wake_up_a_moving_axis_finds_its_reference_where_the_time_i
         assert rt.velocity == pytest.approx(0.05, rel=0.02)
         ring = rt.ring
         before = ring.count
+        hold["at"] = loop.slots + 100  # the loop stops there until the ring is read (its thread runs on)
         stall["s"] = 0.0046
-        assert loop.run_until(lambda: "servo_k" in seen and loop.slots > start + 700, 30.0)
+        assert hold["held"].wait(30.0) and "servo_k" in seen
         assert loop.status()["skipped_cycles"] == 4 and not loop.faults
-        n = ring.count - before
-        rows, _ = ring.window(n)
+        rows, _ = ring.window(ring.count - before + 1)  # from the last sample before the stall on
         ref, pos, vel = rows[0], rows[1], rows[4]
         assert np.max(np.abs(ref - pos)) < 1e-6  # 250 um after the gap, before
         assert np.max(np.abs(vel - 0.05)) < 1e-4  # a 0.3 m/s spike before: 5 slots' motion over one slot
         assert np.max(np.abs(np.diff(ref))) == pytest.approx(5 * 0.05 * 1e-3, rel=0.05)  # the reference skipped
     finally:
+        hold["go"].set()
         loop.close()
         m.close()
 

@@ -160,16 +160,10 @@ class Shell(cmd.Cmd):
         except KeyError:
             raise ShellError(f"axis {name!r}: not on this machine (axes: {', '.join(self.m.axes)})") from None
 
-    def _axes(self, name: str) -> list[Any]:
-        return list(self.m.axes.values()) if name == "all" else [self._axis(name)]
-
     def _named(self, names: list[str]) -> list[Any]:
         """The axes ``names`` names ("all" among them: every axis), each once, all checked before any is used."""
-        seen: dict[str, Any] = {}
-        for name in names:
-            for ax in self._axes(name):
-                seen.setdefault(ax.name, ax)
-        return list(seen.values())
+        named = {ax.name: ax for ax in (self._axis(n) for n in names if n != "all")}  # a bad name raises here
+        return list(self.m.axes.values()) if "all" in names else list(named.values())
 
     def _timeout(self, opts: dict[str, str]) -> float:
         return parse_quantity(opts.pop("timeout"), "time", what="timeout") if "timeout" in opts else DEFAULT_TIMEOUT_S
@@ -408,7 +402,7 @@ class Shell(cmd.Cmd):
     def do_live(self, arg: str) -> bool:
         pos, opts, _ = self._args(arg, 1, "live on|off [channels=position,following_error,...]", 1)
         word = pos[0]
-        if word not in ("on", "off") or len(pos) > 1:
+        if word not in ("on", "off"):
             raise ShellError("usage: live on|off [channels=position,following_error,...]")
         from drivectl.tools.cli.live import parse_channels
 

@@ -310,7 +310,7 @@ class AxisControl:
         if current is not None and current.kind == "jog" and current.target == velocity and not current.done:
             def renew() -> None:
                 if rt.handle is current:
-                    rt.jog_until = loop.cycle + deadman
+                    rt.jog_until = loop.slot + deadman
                     if rt.traj.stopping:  # the dead man had begun the stop: on again
                         rt.traj.move_to(toward, speed)
             loop.submit(renew)
@@ -318,7 +318,7 @@ class AxisControl:
 
         def apply() -> None:
             rt.traj.move_to(toward, speed)
-            rt.jog_until = loop.cycle + deadman
+            rt.jog_until = loop.slot + deadman
 
         return self._command("jog", velocity, apply, self._plan(toward, speed))
 

@@ -205,3 +205,36 @@ def test_the_loop_never_scans_the_old_heap_while_an_axis_is_enabled():
             assert gc.get_stats()[2]["collections"] == full + 1
         finally:
             gc.unfreeze()
+
+
+def test_the_jog_dead_man_counts_slots_a_late_wake_up_skipped_not_cycles_run(tmp_path):
+    """A jog not renewed for its interval stops after that many slots of time: the 12 slots a late wake-up
+    skipped count (was: executed cycles, so the jog ran on 12 ms past its dead man)."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    try:
+        rt = loop.axes["x"]
+        fired = {}
+        deadman = 100
+        stop = rt.traj.stop
+
+        def on_stop() -> None:  # called in the loop's cycle where the dead man fires
+            fired.setdefault("slot", loop.slot)
+            fired.setdefault("cycle", loop.cycle)
+            stop()
+
+        def jog() -> None:
+            rt.traj.stop = on_stop
+            rt.traj.move_to(rt.traj.position + 0.01, 0.005)
+            rt.jog_until = loop.slot + deadman
+            fired["from_slot"], fired["from_cycle"] = loop.slot, loop.cycle
+            stall["s"] = 0.012  # the next sleep wakes 12 ms late: 12 slots skipped
+
+        loop.submit(jog)
+        assert loop.run_until(lambda: "slot" in fired, 30.0)
+        assert fired["slot"] - fired["from_slot"] == deadman, fired
+        assert fired["cycle"] - fired["from_cycle"] <= deadman - 10, fired  # fewer cycles ran than slots passed
+        assert loop.status()["skipped_cycles"] >= 10
+    finally:
+        loop.close()
+        m.close()

@@ -424,8 +424,9 @@ class AxisControl:
         if not isinstance(run, ProfileRun):
             raise ValueError(f"axis {self.name}: {handle.kind} has no run record")
         n = run.k
-        cols = {"time_s": np.arange(n) * self._m.loop.dt, "ref_m": np.asarray(run.refs[0][:n]),
-                "pos_m": run.rec[0, :n], "effort": run.rec[2, :n], "vel_m_s": run.rec[1, :n]}
+        took = ~run.skipped[:n]  # the slots a late wake-up skipped have no row: the time jumps over them
+        cols = {"time_s": (np.arange(n) * self._m.loop.dt)[took], "ref_m": np.asarray(run.refs[0][:n])[took],
+                "pos_m": run.rec[0, :n][took], "effort": run.rec[2, :n][took], "vel_m_s": run.rec[1, :n][took]}
         meta = {**self._header(handle._run_meta), "cycles": str(n), "stop": handle.status}
         if handle.detail:
             meta["stop_detail"] = handle.detail

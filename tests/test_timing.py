@@ -238,3 +238,48 @@ def test_the_jog_dead_man_counts_slots_a_late_wake_up_skipped_not_cycles_run(tmp
     finally:
         loop.close()
         m.close()
+
+
+def test_after_a_late_wake_up_a_profile_run_finds_its_reference_where_the_time_is(tmp_path):
+    """As a move's: a profile run's reference is a function of time, so the 4 slots a 4.6 ms late wake-up
+    skipped are skipped in the run too (was: its cursor moved one row while the axis moved five), and the
+    run's record has no row for the skipped slots (no sample was taken there: its time jumps over them)."""
+    from drivectl.controllers.runtime.cycle import Channel
+    from drivectl.controllers.runtime.handles import ProfileRun
+    from drivectl.controllers.runtime.servo import plan_run
+    from drivectl.profiles.ptp import PointToPoint
+
+    stall = {"s": 0.0}
+    hold = {"at": None, "held": threading.Event(), "go": threading.Event()}
+    m, loop, seen = _sim_loop(tmp_path, stall, hold)
+    try:
+        rt = loop.axes["x"]
+        here = rt.traj.position
+        ch = rt.ch
+        plan = plan_run([Channel(ch.axis, ch.controller, PointToPoint(here, here + 0.08, 0.05, 1.0, 40.0),
+                                 ch.limits)], chunk=None)
+        run = ProfileRun(plan, rec=np.zeros((3, plan.n)))
+
+        def begin() -> None:
+            rt.run = run
+
+        loop.submit(begin)
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 600, 30.0)  # cruising
+        assert rt.velocity == pytest.approx(0.05, rel=0.02)
+        ring = rt.ring
+        before = ring.count
+        k0 = run.k
+        hold["at"] = loop.slots + 100
+        stall["s"] = 0.0046
+        assert hold["held"].wait(30.0) and "servo_k" in seen
+        assert loop.status()["skipped_cycles"] == 4 and not loop.faults
+        rows, _ = ring.window(ring.count - before + 1)
+        ref, pos = rows[0], rows[1]
+        assert np.max(np.abs(ref - pos)) < 1e-6  # the law sees the axis where the run's reference is
+        assert np.max(np.abs(np.diff(ref))) == pytest.approx(5 * 0.05 * 1e-3, rel=0.05)  # the reference skipped
+        assert int(run.skipped[k0:run.k].sum()) == 4  # the skipped slots: no row in the run's trace
+    finally:
+        hold["go"].set()
+        loop.close()
+        m.close()

@@ -327,8 +327,10 @@ class ServoLoop:
         if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
             ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
             ch.controller.skipped(self._elapsed - 1)
-            if run is None:  # a move's reference is a function of time (a run's: of its recorded rows)
+            if run is None:  # a move's reference and a run's are functions of time: they skip as many slots
                 rt.traj.skip(self._elapsed - 1)
+            else:
+                run.skip(self._elapsed - 1)
         if rt.offset:
             fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
         if rt.jog_until and self.slot >= rt.jog_until:  # in slots: a late wake-up's skipped ones count

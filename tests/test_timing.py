@@ -74,7 +74,7 @@ def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
     assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
 
 
-def _sim_loop(tmp_path, stall, hold=None):
+def _sim_loop(tmp_path, stall, hold=None, when=None):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
     simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept).
     ``hold``: {"at": slot, "held": Event, "go": Event}: the loop's thread stops in its first sleep from that
@@ -95,6 +95,8 @@ def _sim_loop(tmp_path, stall, hold=None):
         if hold is not None and hold["at"] is not None and loop.slots >= hold["at"]:
             hold["held"].set()
             hold["go"].wait(30.0)
+        if when is not None and when(loop):
+            stall["s"] = 0.5  # the process stopped here (as SIGSTOP does)
         extra, stall["s"] = stall["s"], 0.0
         if extra:
             seen["servo_k"] = loop.axes["x"].servo_k
@@ -108,7 +110,8 @@ def _sim_loop(tmp_path, stall, hold=None):
     rt = loop.axes["x"]
     rt.state = AxisState.ENABLING
     loop.submit(ch.axis.enable)
-    assert loop.run_until(lambda: rt.state is AxisState.SERVO, 30.0)
+    if when is None:
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 30.0)
     return m, loop, seen
 
 
@@ -281,5 +284,35 @@ def test_after_a_late_wake_up_a_profile_run_finds_its_reference_where_the_time_i
         assert int(run.skipped[k0:run.k].sum()) == 4  # the skipped slots: no row in the run's trace
     finally:
         hold["go"].set()
+        loop.close()
+        m.close()
+
+
+def test_a_stall_while_enabling_is_caught_once_the_drive_may_be_in_operation_enabled(tmp_path):
+    """The master watches an axis while enabling from Ready To Switch On on (the drive may enter Operation
+    Enabled before the loop reads it and takes it up), not only in servo: a 0.5 s stall there faults and
+    stops it (was: not watched)."""
+    from drivectl.controllers.runtime.loop import AxisState
+
+    stall = {"s": 0.0}
+    once = {"done": False}
+
+    def when(loop) -> bool:
+        rt = loop.axes["x"]
+        if not once["done"] and rt.state is AxisState.ENABLING and rt.ch.axis.power in (
+                cia402.PowerState.READY_TO_SWITCH_ON, cia402.PowerState.SWITCHED_ON):
+            once["done"] = True
+            return True
+        return False
+
+    m, loop, seen = _sim_loop(tmp_path, stall, when=when)
+    try:
+        assert loop.run_until(lambda: loop.faults or loop.axes["x"].state is AxisState.SERVO and loop.slots > 1000,
+                              30.0)
+        assert once["done"] and loop.faults, loop.status()
+        f = loop.faults[0]
+        assert f.kind == "servo loop stalled" and "bound 17 ms" in f.detail
+        assert m.axes["x"].power is not cia402.PowerState.OPERATION_ENABLED
+    finally:
         loop.close()
         m.close()

@@ -615,11 +615,21 @@ class ServoLoop:
         d = self.deadlines[rt if isinstance(rt, str) else rt.name]
         return d if d > 0 else math.inf
 
+    @staticmethod
+    def _watched(rt: AxisRuntime) -> bool:
+        """Is the drive (possibly) in Operation Enabled? In servo, and while enabling from Ready To Switch On
+        on: the enable's controlwords are written in a cycle, the drive enters Operation Enabled at the next
+        SYNC, and the loop reads it a cycle later; a stall in between leaves a powered drive unwatched."""
+        return rt.state is AxisState.SERVO or (
+            rt.state is AxisState.ENABLING
+            and rt.ch.axis.power in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCHED_ON,
+                                     PowerState.OPERATION_ENABLED))
+
     def _on_stall(self, gap: float) -> None:
         """A gap past an enabled axis's deadline is a fault (drivectl's own clock; the drive's catches the
         same from its side); a shorter one is a missed cycle, counted, not a fault."""
         self._stalled = False
-        over = [rt for rt in self._rts if rt.state is AxisState.SERVO and gap > self.bound_of(rt)]
+        over = [rt for rt in self._rts if self._watched(rt) and gap > self.bound_of(rt)]
         if not over:
             return
         self.stalls += 1
@@ -640,7 +650,7 @@ class ServoLoop:
             if self._now() - last > 2 * self._watch_s:
                 self._stalled = True
                 for rt in self._rts:
-                    if rt.state is AxisState.SERVO:
+                    if self._watched(rt):
                         quietly(rt.ch.axis.quick_stop)
                         quietly(rt.ch.axis.write, 0.0)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import can
 import canopen
@@ -61,7 +61,7 @@ class IdentityCheck:
     vendor_id: int | None = None
     product_code: int | None = None
     revision: int | None = None
-    source: str | None = None
+    source: str | None = field(default=None, compare=False)  # the file (for the line to change on a mismatch)
 
     def against(self, info: odt.DeviceInformation) -> Identity:
         """The :class:`Identity` the boot compares, the values the file leaves out taken from ``info``."""

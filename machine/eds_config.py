@@ -43,15 +43,15 @@ def plan_bits(frames: list[tuple[str, int, bool]]) -> tuple[int, int]:
 
 def _identity_lines(info: canopen.objectdictionary.DeviceInformation) -> list[str]:
     """The identity check and the values of [DeviceInfo] (0 or absent there: not stated, not checked)."""
-    out = ['identity = "vendor+product"     # 0x1018 compared at boot: vendor+product | vendor | revision '
-           '(vendor, product and the exact revision) | off']
+    out = ['identity = "vendor+product"     # 0x1018 compared at boot: vendor+product | vendor | off | revision',
+           "#   (revision: vendor, product and the exact revision below)"]
     for key, value, what in (("vendor_id", info.vendor_number, "VendorNumber"),
                              ("product_code", info.product_number, "ProductNumber"),
                              ("revision", info.revision_number, "RevisionNumber")):
         if value:
-            out.append(f"{key} = 0x{value:08X}" + " " * max(1, 22 - len(key)) + f"# [DeviceInfo] {what}")
+            out.append(f"{key} = 0x{value:08X}".ljust(32) + f"# [DeviceInfo] {what}")
         else:
-            out.append(f"# {key}: the EDS's [DeviceInfo] states no {what}: not checked")
+            out.append(f"# {key}: the EDS's [DeviceInfo] states no {what}: {key.split('_')[0]} not checked")
     out.append('#   a sibling product or another firmware answers other codes: identity = "vendor" then')
     return out
 

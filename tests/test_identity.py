@@ -75,7 +75,7 @@ def test_device_info_without_product_number_checks_no_product(tmp_path):
     assert "ProductNumber" not in eds.read_text()
     cfg = _init(tmp_path, eds)
     text = cfg.read_text()
-    assert "states no ProductNumber: not checked" in text and "product_code =" not in text
+    assert "states no ProductNumber: product not checked" in text and "product_code =" not in text
     answered, want = _boot(cfg)
     assert want.product_code is None and want.vendor_id == VENDOR and answered[0] == VENDOR
 

@@ -163,3 +163,12 @@ def test_every_real_eds_boots_or_is_refused_never_for_its_identity(tmp_path, nam
     assert want.revision is None and want.product_code == (info.product_number or None)
     assert answered[0] is None or want.vendor_id in (None, answered[0])
     assert want.revision is None and (want.vendor_id or None) == (info.vendor_number or None)
+
+
+def test_shell_scan_says_what_the_drive_answered_under_a_vendor_only_check(tmp_path, monkeypatch, capsys):
+    import io
+
+    cfg = _init(tmp_path, _eds(tmp_path, defaults={}, info={"product_number": PRODUCT}), extra='identity = "vendor"\n')
+    monkeypatch.setattr(sys, "stdin", io.StringIO("scan\n"))
+    assert main(["--config", str(cfg), "shell", "--axis", "x"]) == 0
+    assert "x: node 1, vendor 0x00D71C70, product 0x00000402, revision 0x00010000" in capsys.readouterr().out

@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        print(f"defaults (*): worst hold {out['worst_hold_um']} um, peak-to-peak {out['worst_peak_to_peak_um']} um "
+        print(f"defaults (*): worst hold {out['worst_hold_um']} um, peak-to-peak {out['worst_peak_to_peak_um']} um"
               f"; x, y stribeck {out['worst_stribeck_um']} um, p-p {out['worst_stribeck_peak_to_peak_um']} um; "
               f"noise {out['worst_noise_um']} um, p-p {out['worst_noise_peak_to_peak_um']} um (targets 0.5 um, "
               "0.5 um p-p in every case)")

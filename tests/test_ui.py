@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import subprocess
@@ -11,7 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from ui_helpers import get, machine_config, running_console, ui_stack_or_skip
+from ui_helpers import get, machine_config, running_console, stop_distance, ui_stack_or_skip
 
 ui_stack_or_skip()
 
@@ -301,16 +300,6 @@ def test_the_conductor_paces_simulated_time_to_its_clock_and_never_races_ahead(t
         m.close()
 
 
-def stop_distance(v: float, motion) -> float:
-    """The controlled stop's own distance from ``v`` under the axis's motion limits (its deceleration and
-    jerk: a jerk-limited stop from 5 mm/s does not reach max_acceleration)."""
-    a, j = motion.max_acceleration, motion.max_jerk
-    v = abs(v)
-    if v * j <= a * a:  # the deceleration peaks at sqrt(v j) < a: two jerk phases of sqrt(v/j) each
-        return v * math.sqrt(v / j)
-    return v * v / (2 * a) + v * a / (2 * j)
-
-
 def test_a_jog_release_stops_in_the_next_cycle_and_a_late_renewal_does_not_restart_it(tmp_path):
     """Lockstep, at the console's level: x jogged at 5 mm/s from one client; its release starts the stop at
     once, and a renewal that arrives after the release (one sent before it, or a timer that fired late)
@@ -353,6 +342,7 @@ def test_a_jog_release_stops_in_the_next_cycle_and_a_late_renewal_does_not_resta
               f"(bound {bound * 1e6:.1f} um)")
         ev = console.jog_log[-1]
         assert ev["why"] == "release" and ev["stop_cycle"] == released_at
+        assert 0 < ev["travel_after_stop_m"] <= bound and ev["standstill_after_stop_s"] == (rest - released_at) * dt
         assert "x" not in console.jogs
         # a new press (its own id) jogs again
         assert "held" in console.command("web-1", dict(jog, press=2))

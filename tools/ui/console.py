@@ -308,6 +308,10 @@ class Console:
             dt = loop.dt
             ev["standstill_cycle"] = rest
             ev["standstill_after_renewal_s"] = None if rest is None else (rest - ev["last_renewal_cycle"]) * dt
+            stop = ev["stop_cycle"]  # an explicit end (release, stop, ...): how far and long its stop took
+            after = None if rest is None or stop is None else travel_between(rt.ring, stop, rest)
+            ev["standstill_after_stop_s"] = None if after is None else (rest - stop) * dt
+            ev["travel_after_stop_m"] = after
             ev["deadman_s"] = rt.motion.jog_deadman
             self.jog_log.append(ev)
         for name, ax in self.m.axes.items():  # a drive in Fault: its 0x603F, read once per fault
@@ -369,6 +373,16 @@ class Console:
             written = cap.write(path)
         self.saved.extend(written)
         return written
+
+
+def travel_between(ring: Any, first: int, last: int) -> float | None:
+    """How far the reference went from loop cycle ``first`` to ``last`` (m, signed), read from the ring;
+    None when the ring no longer holds both."""
+    data, cycles = ring.window(ring.size - 1)
+    a, b = data[0][cycles == first], data[0][cycles == last]
+    if not len(a) or not len(b):
+        return None
+    return float(b[0] - a[0])
 
 
 def press_id(value: Any) -> int | None:

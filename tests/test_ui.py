@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from ui_helpers import get, machine_config, running_console, ui_stack_or_skip
+from ui_helpers import get, machine_config, running_console, stop_distance, ui_stack_or_skip
 
 ui_stack_or_skip()
 
@@ -297,4 +297,58 @@ def test_the_conductor_paces_simulated_time_to_its_clock_and_never_races_ahead(t
         assert got + 100 <= settled(got + 100) <= got + 110
     finally:
         c.stop()
+        m.close()
+
+
+def test_a_jog_release_stops_in_the_next_cycle_and_a_late_renewal_does_not_restart_it(tmp_path):
+    """Lockstep, at the console's level: x jogged at 5 mm/s from one client; its release starts the stop at
+    once, and a renewal that arrives after the release (one sent before it, or a timer that fired late)
+    is ignored: from the release to standstill the reference goes no further than the stop's own
+    distance plus 2 cycles' travel. A new press afterwards jogs again."""
+    import drivectl
+    from drivectl.tools.ui.console import Console, standstill_cycle
+
+    m = drivectl.connect(machine_config(), axes=["x"], fault_dir=tmp_path)
+    console = Console(m, tmp_path)  # no conductor: this test runs the cycles
+    try:
+        x = m.axes["x"]
+        x.enable()
+        rt, loop = m.loop.axes["x"], m.loop
+        jog = {"op": "jog", "axis": "x", "direction": 1, "speed": "5mm/s", "press": 1}
+        assert "held" in console.command("web-1", jog)
+        for _ in range(10):  # held for 0.5 s, renewed every 50 ms
+            loop.step(50)
+            console.command("web-1", jog)
+        v = 5e-3
+        assert rt.traj.velocity == pytest.approx(v, rel=1e-6)
+        released_at, ref0 = loop.cycle, rt.traj.position
+        assert "jog ended" in console.command("web-1", {"op": "jog_release", "axis": "x", "press": 1})
+        loop.step(1)
+        assert 0 < rt.traj.velocity < v  # the controlled stop began in the next cycle
+        loop.step(2)
+        assert console.command("web-1", jog) == ""  # the late renewal: ignored, no new jog
+        loop.step(5)
+        console.command("web-1", jog)
+        loop.step(300)
+        console.watch()
+        assert rt.handle is None or rt.handle.kind == "stop"
+        rest = standstill_cycle(rt.ring, released_at)
+        assert rest is not None and rest - released_at < 100  # well inside the 200-cycle dead man
+        dt = loop.dt
+        travelled = rt.traj.position - ref0
+        bound = stop_distance(v, rt.motion) + 2 * v * dt
+        assert 0 < travelled <= bound, (travelled, bound)
+        print(f"release to standstill: {travelled * 1e6:.1f} um in {(rest - released_at) * dt * 1e3:.0f} ms "
+              f"(bound {bound * 1e6:.1f} um)")
+        ev = console.jog_log[-1]
+        assert ev["why"] == "release" and ev["stop_cycle"] == released_at
+        assert 0 < ev["travel_after_stop_m"] <= bound and ev["standstill_after_stop_s"] == (rest - released_at) * dt
+        assert "x" not in console.jogs
+        # a new press (its own id) jogs again
+        assert "held" in console.command("web-1", dict(jog, press=2))
+        loop.step(100)
+        assert rt.traj.velocity == pytest.approx(v, rel=1e-6)
+        console.command("web-1", {"op": "jog_release", "axis": "x", "press": 2})
+        loop.step(200)
+    finally:
         m.close()

@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from ui_helpers import browser_or_skip, get, get_json, make_driver, running_console, ui_stack_or_skip
+from ui_helpers import browser_or_skip, get, get_json, make_driver, running_console, stop_distance, ui_stack_or_skip
 
 ui_stack_or_skip()
 CHROME, CHROMEDRIVER = browser_or_skip()
@@ -168,6 +168,12 @@ def test_holding_jog_moves_x_and_release_or_a_lost_connection_stops_it_within_th
         # from the ring: the reference came to rest within the dead-man interval of the last renewal
         assert ev["standstill_after_renewal_s"] is not None
         assert 0 <= ev["standstill_after_renewal_s"] <= ev["deadman_s"]
+        # from the release's arrival (its loop cycle) to standstill: the stop's own distance + 2 cycles, no more
+        v, dt = ev["velocity_m_s"], console.m.loop.dt
+        bound = stop_distance(v, console.m.loop.axes["x"].motion) + 2 * abs(v) * dt
+        assert ev["travel_after_stop_m"] is not None and 0 <= ev["travel_after_stop_m"] <= bound, (ev, bound)
+        print(f"browser: release to standstill {ev['travel_after_stop_m'] * 1e6:.1f} um in "
+              f"{ev['standstill_after_stop_s'] * 1e3:.0f} ms at {v * 1e3:g} mm/s (bound {bound * 1e6:.1f} um)")
         held_at = x.position
         # the axis holds where it stopped: still enabled, no command under way
         wait_for(browser, lambda: console.m.status()["axes"]["x"]["move"] is None, "no command under way")

@@ -4,6 +4,7 @@ Debian chromium driven by selenium (skipped, with the reason, where either is mi
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import tomllib
@@ -107,3 +108,14 @@ def make_driver(chrome: str, driver_path: str, profile: Path) -> Any:
             if attempt == 2:
                 raise
     raise AssertionError("unreachable")
+
+
+def stop_distance(v: float, motion: Any) -> float:
+    """The controlled stop's own distance from ``v`` under the axis's motion limits (its deceleration and
+    jerk: a jerk-limited stop from 5 mm/s does not reach max_acceleration)."""
+    a, j = motion.max_acceleration, motion.max_jerk
+    v = abs(v)
+    if v * j <= a * a:  # the deceleration peaks at sqrt(v j) < a: two jerk phases of sqrt(v/j) each
+        return v * math.sqrt(v / j)
+    return v * v / (2 * a) + v * a / (2 * j)
+

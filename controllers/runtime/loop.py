@@ -251,11 +251,32 @@ class ServoLoop:
     # -- commands (any thread) -------------------------------------------------------------------------
     def submit(self, fn: Callable[[], None]) -> None:
         """Run ``fn`` in the loop at the next cycle boundary (at once in lockstep or on the loop thread)."""
-        if self._thread is None or threading.current_thread() is self._thread or not self.running:
+        if self._thread is None and not self.io_lock.acquire(blocking=False):
+            # lockstep, another thread is in a cycle: the next cycle starts with fn (it takes the inbox
+            # first), or this thread runs it once it has the lock; never cycles later (a lock is not fair)
+            self._inbox.append(fn)
+            with self.io_lock:
+                self._take_inbox()
+        elif self._thread is None:
+            try:
+                fn()
+            finally:
+                self.io_lock.release()
+        elif threading.current_thread() is self._thread or not self.running:
             with self.io_lock:
                 fn()
         else:
             self._inbox.append(fn)
+
+    def _take_inbox(self) -> None:
+        """Run the submitted commands, in order (with io_lock held)."""
+        inbox = self._inbox
+        while inbox:
+            fn = inbox.popleft()
+            try:
+                fn()
+            except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
+                self.command_errors.append(f"{type(exc).__name__}: {exc}")
 
     def step(self, cycles: int = 1) -> None:
         """Lockstep: run ``cycles`` cycles on the caller's thread."""
@@ -285,14 +306,8 @@ class ServoLoop:
     # -- the cycle ---------------------------------------------------------------------------------------
     def _cycle_all(self) -> None:
         """One cycle of every axis (the loop's own thread in wall mode, the caller's in lockstep)."""
-        inbox = self._inbox
         with self.io_lock:
-            while inbox:
-                fn = inbox.popleft()
-                try:
-                    fn()
-                except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
-                    self.command_errors.append(f"{type(exc).__name__}: {exc}")
+            self._take_inbox()
             k = self.cycle
             self.slot += self._elapsed - 1  # the slots skipped before this cycle count for a jog's dead man
             if self._elapsed > 1:  # woke late: the axes' next samples belong to the slot this cycle runs in

@@ -107,6 +107,7 @@ class JogHold:
     velocity: float
     handle: Any
     last_renewal_cycle: int
+    press: int | None = None  # the page's number of the button press (None: a client that sends none)
 
 
 class Console:
@@ -120,6 +121,10 @@ class Console:
         self.jogs: dict[str, JogHold] = {}
         self.stopping: list[dict[str, Any]] = []  # jogs that ended and whose standstill is not yet seen
         self.jog_log: list[dict[str, Any]] = []
+        #: (client, axis) -> the last press whose jog ended (a page numbers its presses 1, 2, ...): a renewal
+        #: of an ended press (sent before the release, or by a timer that fired late) is ignored, never a
+        #: new jog (docs/ui.md)
+        self.ended_press: dict[tuple[str, str], int] = {}
         self.capture: Capture | None = None
         self.capture_seq = 0
         self.saved: list[Path] = []
@@ -167,7 +172,7 @@ class Console:
             ax.stop("stopped (console)")
             return f"{ax.name}: stop"
         if op == "jog_release":
-            return self.jog_release(client, str(msg.get("axis")), str(msg.get("why") or "release"))
+            return self.jog_release(client, str(msg.get("axis")), str(msg.get("why") or "release"), msg.get("press"))
         if op == "jog":
             return self.jog(client, msg)
         handler = {"enable": self._enable, "disable": self._disable, "fault_reset": self._fault_reset,
@@ -232,19 +237,29 @@ class Console:
             raise ValueError(f"jog: direction must be 1 or -1, got {direction!r}")
         speed = self.speed(ax, msg.get("speed"), "jog speed")
         v = direction * (speed if speed is not None else ax.motion_limits.max_velocity * 0.1)
+        press = press_id(msg.get("press"))
+        if press is not None and press <= self.ended_press.get((client, ax.name), 0):
+            return ""  # a renewal of a jog that ended (released, stopped): it must not start it again
         held = self.jogs.get(ax.name)
-        if held is not None and (held.velocity != v or held.client != client):
+        if held is not None and (held.velocity != v or held.client != client or held.press != press):
             self._end_jog(ax.name, "replaced")
             held = None
         handle = ax.jog(v)  # same v as the jog under way: a renewal (session.py)
         cycle = self.m.loop.slot  # the ring records slots (capture.Ring): the standstill is read there
         if held is None or held.handle is not handle:
-            self.jogs[ax.name] = JogHold(client, v, handle, cycle)
+            self.jogs[ax.name] = JogHold(client, v, handle, cycle, press)
             return f"{ax.name}: jog {v * 1e3:+g} mm/s (held)"
         held.last_renewal_cycle = cycle
         return ""
 
-    def jog_release(self, client: str, axis: str, why: str = "release") -> str:
+    def _press_ended(self, client: str, axis: str, press: int) -> None:
+        key = (client, axis)
+        self.ended_press[key] = max(press, self.ended_press.get(key, 0))
+
+    def jog_release(self, client: str, axis: str, why: str = "release", press: Any = None) -> str:
+        press = press_id(press)
+        if press is not None:  # whatever is held: renewals of this press that come later are ignored
+            self._press_ended(client, axis, press)
         held = self.jogs.get(axis)
         if held is None or held.client != client:
             return ""
@@ -256,11 +271,15 @@ class Console:
         for name, held in list(self.jogs.items()):
             if held.client == client:
                 self._end_jog(name, "connection lost")
+        for key in [k for k in self.ended_press if k[0] == client]:
+            del self.ended_press[key]
 
     def _end_jog(self, axis: str, why: str) -> None:
         held = self.jogs.pop(axis, None)
         if held is None:
             return
+        if held.press is not None:
+            self._press_ended(held.client, axis, held.press)
         ax = self.m.axes[axis]
         stopped_cycle = self.m.loop.cycle
         if not held.handle.done and ax.enabled:
@@ -289,6 +308,10 @@ class Console:
             dt = loop.dt
             ev["standstill_cycle"] = rest
             ev["standstill_after_renewal_s"] = None if rest is None else (rest - ev["last_renewal_cycle"]) * dt
+            stop = ev["stop_cycle"]  # an explicit end (release, stop, ...): how far and long its stop took
+            after = None if rest is None or stop is None else travel_between(rt.ring, stop, rest)
+            ev["standstill_after_stop_s"] = None if after is None else (rest - stop) * dt
+            ev["travel_after_stop_m"] = after
             ev["deadman_s"] = rt.motion.jog_deadman
             self.jog_log.append(ev)
         for name, ax in self.m.axes.items():  # a drive in Fault: its 0x603F, read once per fault
@@ -350,6 +373,25 @@ class Console:
             written = cap.write(path)
         self.saved.extend(written)
         return written
+
+
+def travel_between(ring: Any, first: int, last: int) -> float | None:
+    """How far the reference went from loop cycle ``first`` to ``last`` (m, signed), read from the ring;
+    None when the ring no longer holds both."""
+    data, cycles = ring.window(ring.size - 1)
+    a, b = data[0][cycles == first], data[0][cycles == last]
+    if not len(a) or not len(b):
+        return None
+    return float(b[0] - a[0])
+
+
+def press_id(value: Any) -> int | None:
+    """A jog's press number as the page sends it (a positive integer), or None when there is none."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"jog: press must be a positive integer, got {value!r}")
+    return value
 
 
 def standstill_cycle(ring: Any, since: int) -> int | None:

@@ -195,8 +195,11 @@ function jogStart(axis, dir, button) {
   const speed = tid(`jog-speed-${axis}`).value;
   const deadman = (ui.status && ui.status.axes[axis].jog_deadman_s) || 0.2;
   const renew = Math.max(20, Math.min(100, deadman * 1000 / 4));  // several renewals per dead-man interval
-  const j = { axis, dir, button, speed, stopped: false };
-  const once = () => send("jog", { axis, direction: dir, speed }, (r) => { if (!r.ok) jogStop("refused"); });
+  // each press has its number: the server ignores a renewal of a press that ended (one still in flight
+  // when the release went out), so a release is final
+  const press = (ui.presses = (ui.presses || 0) + 1);
+  const j = { axis, dir, button, speed, press, stopped: false };
+  const once = () => send("jog", { axis, direction: dir, speed, press }, (r) => { if (!r.ok) jogStop("refused"); });
   once();
   j.timer = setInterval(() => { if (!j.stopped) once(); }, renew);
   button.classList.add("held");
@@ -209,7 +212,7 @@ function jogStop(why) {
   j.stopped = true;
   clearInterval(j.timer);
   j.button.classList.remove("held");
-  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) send("jog_release", { axis: j.axis, why });
+  if (ui.ws && ui.ws.readyState === WebSocket.OPEN) send("jog_release", { axis: j.axis, why, press: j.press });
 }
 document.addEventListener("visibilitychange", () => { if (document.hidden) jogStop("hidden tab"); });
 window.addEventListener("blur", () => jogStop("window lost focus"));

@@ -55,6 +55,15 @@ def test_own_bus_log_converts_to_the_runs_trace(tmp_path: Path, suffix: str, cap
     # the velocity the drive mapped (0x606C) is the run's own column
     assert np.allclose(conv.columns["vel_m_s"][k : k + len(run)], run.columns["vel_m_s"], atol=1e-12)
     assert np.all(np.diff(conv.columns["frame_time_s"]) >= 0)
+    if suffix == ".asc":  # summary and explain take a trace without a reference (ref: none)
+        from drivectl.plant_emulator.models import load_plant
+        from drivectl.tools.explain.data import prepare
+
+        assert prepare(conv, load_plant("rigid-x"), str(conv_dir / "x.csv")) is not None
+        capsys.readouterr()
+        assert main(["summary", str(conv_dir / "x.csv")]) == 0
+        row = capsys.readouterr().out.splitlines()[-1].split()
+        assert row[1:4] == ["-", "-", "-"] and "nan" not in row
 
 
 def test_lost_pdos_are_flagged_not_interpolated(tmp_path: Path, capsys) -> None:

@@ -16,6 +16,7 @@ kept). Every word about an axis's end state comes from the drive's own statuswor
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -455,7 +456,9 @@ def _print_summary(rows: dict, traces: dict) -> None:
         tr = traces[name]
         unit = tr.effort_unit or "?"
         energy = f"{m['energy_J']:.3g} {'J' if unit == 'N' else unit + 'm'}"
-        print(f"{str(name):<12} {m['max_um']:>9.2f} {m['mean_um']:>9.2f} {m['rms_um']:>9.2f} {energy:>10} "
+        # a trace without a reference (``# ref: none``: from a bus log in CST) has no tracking error
+        e = {k: f"{m[k]:>9.2f}" if math.isfinite(m[k]) else f"{'-':>9}" for k in ("max_um", "mean_um", "rms_um")}
+        print(f"{str(name):<12} {e['max_um']} {e['mean_um']} {e['rms_um']} {energy:>10} "
               f"{m['sigma']:>9.3g} {m['du_rms']:>9.3g} {tr.meta.get('stop', '-'):>10}")
 
 

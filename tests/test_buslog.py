@@ -55,6 +55,14 @@ def test_own_bus_log_converts_to_the_runs_trace(tmp_path: Path, suffix: str, cap
     # the velocity the drive mapped (0x606C) is the run's own column
     assert np.allclose(conv.columns["vel_m_s"][k : k + len(run)], run.columns["vel_m_s"], atol=1e-12)
     assert np.all(np.diff(conv.columns["frame_time_s"]) >= 0)
+    capsys.readouterr()
+    assert main(["decode", str(log)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any("SDO write 0x1006:00 Communication cycle period = 1000 (0x3E8)" in s for s in lines)
+    assert any("SDO write 0x6060:00 Modes of operation = 10" in s for s in lines)
+    assert any("node 1: boot-up" in s for s in lines) and any("NMT reset node -> node 1" in s for s in lines)
+    assert any("-> Operation Enabled" in s for s in lines)
+    assert lines[-2].startswith(f"SYNC: {len(conv)} frames, period median")
     if suffix == ".asc":  # summary and explain take a trace without a reference (ref: none)
         from drivectl.plant_emulator.models import load_plant
         from drivectl.tools.explain.data import ExplainError, prepare

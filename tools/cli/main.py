@@ -69,6 +69,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("ui", "drivectl.tools.ui.command:add_ui_parser", "drivectl.tools.ui.command:cmd_ui"),
     Command("doctor", "drivectl.tools.cli.doctor:add_doctor_parser", "drivectl.tools.cli.doctor:cmd_doctor", True),
     Command("drive", "drivectl.tools.cli.drive:add_drive_parser", "drivectl.tools.cli.drive:cmd_drive", True),
+    Command("decode", "drivectl.tools.buslog.decode:add_decode_parser", "drivectl.tools.buslog.decode:cmd_decode"),
     Command("plot", f"{_HERE}:add_plot_parser", f"{_HERE}:cmd_plot"),
     Command("summary", f"{_HERE}:add_summary_parser", f"{_HERE}:cmd_summary"),
 )

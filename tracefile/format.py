@@ -191,7 +191,7 @@ class Trace:
         missing = [c for c in REQUIRED if c not in names]
         if missing:
             raise TraceError(f"{source}: missing column(s) {', '.join(missing)} (have {', '.join(names)})")
-        wanted = [j for j, n in enumerate(names) if keep is None or n in keep or n in REQUIRED]
+        wanted = [j for j, n in enumerate(names) if keep is None or n in keep or n in REQUIRED or n == "lost"]
         streamed = meta.get("recording") == STREAMED
         budget = max_read_bytes()
         width = len(wanted)
@@ -268,8 +268,15 @@ class Trace:
         if rows_done < store.shape[1] // 2 and rows_done > CHUNK_ROWS:  # mostly unused: give it back
             store = store[:, :rows_done].copy()
         columns = {names[j]: store[slot, :rows_done] for slot, j in enumerate(wanted)}
+        # a trace from a bus log (tools/buslog): no reference on the bus is ``# ref: none`` (ref_m NaN), and a
+        # SYNC without its PDOs is a row flagged ``lost`` with NaN values, never interpolated
+        lost = columns.get("lost")
         for name in REQUIRED:
+            if name == "ref_m" and meta.get("ref") == "none":
+                continue
             bad = ~np.isfinite(columns[name])
+            if lost is not None and name != "time_s":
+                bad &= lost == 0
             if bad.any():
                 row = int(np.argmax(bad))
                 raise TraceError(f"{source}: column {name}: not a finite number at data row {row + 1}")

@@ -16,6 +16,7 @@ kept). Every word about an axis's end state comes from the drive's own statuswor
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -68,6 +69,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("ui", "drivectl.tools.ui.command:add_ui_parser", "drivectl.tools.ui.command:cmd_ui"),
     Command("doctor", "drivectl.tools.cli.doctor:add_doctor_parser", "drivectl.tools.cli.doctor:cmd_doctor", True),
     Command("drive", "drivectl.tools.cli.drive:add_drive_parser", "drivectl.tools.cli.drive:cmd_drive", True),
+    Command("decode", "drivectl.tools.buslog.decode:add_decode_parser", "drivectl.tools.buslog.decode:cmd_decode"),
     Command("plot", f"{_HERE}:add_plot_parser", f"{_HERE}:cmd_plot"),
     Command("summary", f"{_HERE}:add_summary_parser", f"{_HERE}:cmd_summary"),
 )
@@ -127,6 +129,10 @@ def add_trace_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--no-plot", action="store_true", help="skip the PNG")
     t.add_argument("--bus-log", metavar="FILE", help="record every CAN frame (python-can Logger; format by suffix: "
                    ".asc .blf .log .csv .trc)")
+    t.add_argument("--from-log", metavar="LOG", help="no run: turn a recorded CAN log (.asc .blf .log .trc .csv "
+                   ".mf4) into the axis's trace, one row per SYNC (docs/guide/buslog.md)")
+    t.add_argument("--node", type=int, metavar="N", help="with --from-log: the drive's node-ID (default: the axis's)")
+    t.add_argument("--eds", metavar="FILE", help="with --from-log: the drive's EDS (default: the axis's)")
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace")
@@ -195,8 +201,32 @@ def cmd_trace(args: argparse.Namespace) -> int:
     # for the whole command (main's, when it routes them): a signal during set-up is seen before the axes
     # are enabled (nothing moves), one during the run at the next cycle boundary, one while the trace is
     # written does not tear it
+    if args.from_log:
+        return _trace_from_log(args)
     with stop_on_signals() as request:
         return _trace(args, request)
+
+
+def _trace_from_log(args: argparse.Namespace) -> int:
+    """``trace --from-log``: the recorded log to a trace (tools/buslog); nothing moves, no bus opens."""
+    from drivectl.machine.config import load_config
+    from drivectl.tools.buslog import log_to_trace
+    from drivectl.tools.cli import checks
+
+    names = checks.parse_axes(args.axis)
+    if len(names) != 1:
+        raise checks.ConfigError(f"--axis {args.axis}: --from-log converts one axis (one node) at a time")
+    cfg = load_config(args.config)
+    path = log_to_trace(Path(args.from_log), axis=names[0], out_dir=Path(args.out), node=args.node,
+                        eds=Path(args.eds) if args.eds else None, config=cfg)
+    from drivectl.tracefile.format import Trace
+
+    tr = Trace.read(path, columns=("lost",))
+    print(f"trace: {args.from_log}: {len(tr)} SYNCs of node {tr.meta.get('node')}, {tr.meta.get('lost_rows')} lost, "
+          f"cycle {float(tr.meta['dt_s']) * 1e3:g} ms ({tr.meta.get('dt_source')}), frame jitter max "
+          f"{float(tr.meta.get('frame_jitter_max_s', 'nan')) * 1e3:.3f} ms", file=sys.stderr)
+    print(f"wrote {path}")
+    return 0
 
 
 def _trace(args: argparse.Namespace, request: StopRequest) -> int:
@@ -427,7 +457,9 @@ def _print_summary(rows: dict, traces: dict) -> None:
         tr = traces[name]
         unit = tr.effort_unit or "?"
         energy = f"{m['energy_J']:.3g} {'J' if unit == 'N' else unit + 'm'}"
-        print(f"{str(name):<12} {m['max_um']:>9.2f} {m['mean_um']:>9.2f} {m['rms_um']:>9.2f} {energy:>10} "
+        # a trace without a reference (``# ref: none``: from a bus log in CST) has no tracking error
+        e = {k: f"{m[k]:>9.2f}" if math.isfinite(m[k]) else f"{'-':>9}" for k in ("max_um", "mean_um", "rms_um")}
+        print(f"{str(name):<12} {e['max_um']} {e['mean_um']} {e['rms_um']} {energy:>10} "
               f"{m['sigma']:>9.3g} {m['du_rms']:>9.3g} {tr.meta.get('stop', '-'):>10}")
 
 

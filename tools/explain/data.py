@@ -111,6 +111,8 @@ def prepare(trace: Trace, spec: PlantSpec, source: str = "<trace>") -> Prepared:
             raise ExplainError(f"{source}: missing column {name!r}")
     cols = {k: np.asarray(trace.columns[k], dtype=float) for k in REQUIRED}
     for name, col in cols.items():
+        if name == "ref_m" and trace.meta.get("ref") == "none":
+            continue  # explain needs only effort and position (a bus log in CST carries no reference)
         bad = ~np.isfinite(col)
         if bad.any():
             raise ExplainError(f"{source}: column {name}: not a finite number at data row {int(np.argmax(bad)) + 1}")

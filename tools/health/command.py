@@ -30,6 +30,15 @@ def add_health_parser(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--machine", required=True, help="the machine the traces come from")
     i.add_argument("--axis", help="the axis, where a file does not say (bus logs)")
     _store_arg(i)
+    a = hs.add_parser("analyze", help="fit every run without fits, on Dask",
+                      description="Fit every run of the store that has no fits yet against its baseline (the "
+                      "configuration's axes.NAME.model, else the model the run names): one fit per effect of "
+                      "the vocabulary, by explain's fitters, spread over Dask workers that read the Parquet "
+                      "files themselves. Interrupted, it keeps the runs that finished.")
+    _store_arg(a)
+    a.add_argument("--scheduler", metavar="ADDRESS", help="a running dask scheduler (tcp://HOST:8786); default: "
+                   "an embedded LocalCluster on the cores that are free")
+    a.add_argument("--workers", type=int, metavar="N", help="processes of the embedded LocalCluster")
 
 
 def _store_arg(p: argparse.ArgumentParser) -> None:
@@ -53,6 +62,8 @@ def store_path(args: argparse.Namespace) -> tuple[Path, MachineConfig]:
 def cmd_health(args: argparse.Namespace) -> int:
     if args.health_command == "ingest":
         return _ingest(args)
+    if args.health_command == "analyze":
+        return _analyze(args)
     raise InputError(f"health: unknown subcommand {args.health_command!r}")
 
 
@@ -72,3 +83,28 @@ def _ingest(args: argparse.Namespace) -> int:
     print(f"health ingest: {counts['added']} added, {counts['present']} already there, "
           f"{counts['refused']} refused; store {root}")
     return EXIT_BAD_INPUT if counts["refused"] else EXIT_OK
+
+
+def _analyze(args: argparse.Namespace) -> int:
+    from drivectl.tools.health.analyze import analyze
+    from drivectl.tools.health.store import Store
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers: expected an integer >= 1, got {args.workers}")
+    root, cfg = store_path(args)
+    models = {name: ax.model for name, ax in cfg.axes.items() if ax.model}
+    errors: list[str] = []
+
+    def say(line: str) -> None:
+        errors.append(line)
+        print(f"drivectl: {line}", file=sys.stderr)
+
+    with Store(root) as store:
+        try:
+            done, failed = analyze(store, scheduler=args.scheduler, workers=args.workers, models=models,
+                                   progress=sys.stderr.isatty(), on_error=say)
+        except KeyboardInterrupt:
+            print("drivectl: health analyze: interrupted; the runs that finished keep their fits", file=sys.stderr)
+            return 130
+    print(f"health analyze: {done} runs fitted, {failed} failed; store {root}")
+    return EXIT_BAD_INPUT if failed else EXIT_OK

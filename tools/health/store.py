@@ -153,6 +153,17 @@ class Store:
         names = [d[0] for d in cur.description]
         return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
 
+    def add_fits(self, sha: str, rows: list[tuple[str, str, float, float | None, float]]) -> None:
+        """A run's fits (effect, parameter, value, uncertainty, gap), in one transaction."""
+        self.con.begin()
+        try:
+            self.con.execute("DELETE FROM fits WHERE run = ?", [sha])
+            self.con.executemany("INSERT INTO fits VALUES (?, ?, ?, ?, ?, ?)", [(sha, *r) for r in rows])
+            self.con.commit()
+        except BaseException:
+            self.con.rollback()
+            raise
+
     def ingest_all(self, paths: Iterable[str | Path], machine: str, *, axis: str | None = None,
                    config: Any = None) -> Iterator[Outcome]:
         """:meth:`ingest` each file; a refused one is reported and the others go on."""

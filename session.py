@@ -310,7 +310,7 @@ class AxisControl:
         if current is not None and current.kind == "jog" and current.target == velocity and not current.done:
             def renew() -> None:
                 if rt.handle is current:
-                    rt.jog_until = loop.cycle + deadman
+                    rt.jog_until = loop.slot + deadman
                     if rt.traj.stopping:  # the dead man had begun the stop: on again
                         rt.traj.move_to(toward, speed)
             loop.submit(renew)
@@ -318,7 +318,7 @@ class AxisControl:
 
         def apply() -> None:
             rt.traj.move_to(toward, speed)
-            rt.jog_until = loop.cycle + deadman
+            rt.jog_until = loop.slot + deadman
 
         return self._command("jog", velocity, apply, self._plan(toward, speed))
 
@@ -424,8 +424,9 @@ class AxisControl:
         if not isinstance(run, ProfileRun):
             raise ValueError(f"axis {self.name}: {handle.kind} has no run record")
         n = run.k
-        cols = {"time_s": np.arange(n) * self._m.loop.dt, "ref_m": np.asarray(run.refs[0][:n]),
-                "pos_m": run.rec[0, :n], "effort": run.rec[2, :n], "vel_m_s": run.rec[1, :n]}
+        took = ~run.skipped[:n]  # the slots a late wake-up skipped have no row: the time jumps over them
+        cols = {"time_s": (np.arange(n) * self._m.loop.dt)[took], "ref_m": np.asarray(run.refs[0][:n])[took],
+                "pos_m": run.rec[0, :n][took], "effort": run.rec[2, :n][took], "vel_m_s": run.rec[1, :n][took]}
         meta = {**self._header(handle._run_meta), "cycles": str(n), "stop": handle.status}
         if handle.detail:
             meta["stop_detail"] = handle.detail

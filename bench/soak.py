@@ -16,10 +16,11 @@ moves, jogs, stops and captures, status polled at 20 Hz; in-process, or with ``-
 ``drivectl emulate --socketcand`` in another process. At the end the process is stopped for 0.5 s
 (SIGSTOP, SIGCONT from a helper process): the axes must fault within their deadline plus 2 cycles after it
 resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "faults", "missed_fraction",
-"worst_late_ms", "latency_p99_99_ms", "moves_done", "moves_failed"} (the deliberate stall excluded).
+"worst_late_ms", "latency_p99_99_ms", "moves_done", "moves_failed", "hogs"} (the deliberate stall excluded;
+"hogs": how many CPU-bound processes ran beside it, `--hog N`, default 1).
 Target: 0 faults over 30 minutes, both ways.
 
-    python bench/soak.py --wall [--across] [--cycle-s 0.002] [--minutes 30] [--json]
+    python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002] [--minutes 30] [--json]
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def _emulator(tmp: Path, config: Path):
 
 
 def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
-              cycle_s: float = 0.001) -> dict:
+              cycle_s: float = 0.001, hogs: int = 1) -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
     import dataclasses
     import multiprocessing
@@ -80,8 +81,9 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
         emu, port = _emulator(tmp, config)
         cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
                                                                host="127.0.0.1", port=port))
-    burner = multiprocessing.get_context("spawn").Process(target=_burn, daemon=True)
-    burner.start()
+    burners = [multiprocessing.get_context("spawn").Process(target=_burn, daemon=True) for _ in range(hogs)]
+    for burner in burners:
+        burner.start()
     polls, done, failed, fault_lines, refusals = [0], 0, 0, [], [0]
     try:
         with drivectl.connect(cfg, clock="wall", fault_dir=tmp) as m:
@@ -143,12 +145,13 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             poller.join(1.0)
             stall = _stall(m, stall_s)
     finally:
-        burner.terminate()
+        for burner in burners:
+            burner.terminate()
         if emu is not None:
             emu.send_signal(signal.SIGTERM)
             emu.communicate(timeout=30)
     slots = max(st["cycles"] - st0["cycles"] + st["skipped_cycles"] - st0["skipped_cycles"], 1)
-    return {"minutes": minutes, "faults": st["faults"] - st0["faults"],
+    return {"minutes": minutes, "hogs": hogs, "faults": st["faults"] - st0["faults"],
             "missed_fraction": (st["missed_deadlines"] - st0["missed_deadlines"]) / slots,
             "worst_late_ms": st["worst_late_ms"], "latency_p99_99_ms": st["latency_ms"]["p99_99"],
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
@@ -218,11 +221,15 @@ def main() -> None:
     ap.add_argument("--across", action="store_true", help="--wall against drivectl emulate --socketcand")
     ap.add_argument("--cycle-s", type=float, default=0.001,
                     help="--wall: the servo cycle (default 0.001; longer: the way out where a host cannot keep it)")
+    ap.add_argument("--hog", type=int, default=1, help="--wall: CPU-bound processes beside the soak (default 1)")
     args = ap.parse_args()
     if args.wall:
+        if args.hog < 0:
+            ap.error(f"--hog: must be 0 or more, got {args.hog}")
         if not (0.0005 <= args.cycle_s <= 0.01):
             ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
-        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s)
+        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s,
+                      hogs=args.hog)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
             for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
@@ -232,7 +239,8 @@ def main() -> None:
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
-              f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled beside one CPU-bound process; "
+              f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled "
+              f"beside {args.hog} CPU-bound process(es); "
               "load average "
               f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
         print(f"faults {r['faults']}, moves done {r['moves_done']}, failed {r['moves_failed']}, enables refused "

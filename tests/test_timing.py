@@ -74,7 +74,7 @@ def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
     assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
 
 
-def _sim_loop(tmp_path, stall, hold=None):
+def _sim_loop(tmp_path, stall, hold=None, when=None):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
     simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept).
     ``hold``: {"at": slot, "held": Event, "go": Event}: the loop's thread stops in its first sleep from that
@@ -95,6 +95,8 @@ def _sim_loop(tmp_path, stall, hold=None):
         if hold is not None and hold["at"] is not None and loop.slots >= hold["at"]:
             hold["held"].set()
             hold["go"].wait(30.0)
+        if when is not None and when(loop):
+            stall["s"] = 0.5  # the process stopped here (as SIGSTOP does)
         extra, stall["s"] = stall["s"], 0.0
         if extra:
             seen["servo_k"] = loop.axes["x"].servo_k
@@ -108,7 +110,8 @@ def _sim_loop(tmp_path, stall, hold=None):
     rt = loop.axes["x"]
     rt.state = AxisState.ENABLING
     loop.submit(ch.axis.enable)
-    assert loop.run_until(lambda: rt.state is AxisState.SERVO, 30.0)
+    if when is None:
+        assert loop.run_until(lambda: rt.state is AxisState.SERVO, 30.0)
     return m, loop, seen
 
 
@@ -205,3 +208,111 @@ def test_the_loop_never_scans_the_old_heap_while_an_axis_is_enabled():
             assert gc.get_stats()[2]["collections"] == full + 1
         finally:
             gc.unfreeze()
+
+
+def test_the_jog_dead_man_counts_slots_a_late_wake_up_skipped_not_cycles_run(tmp_path):
+    """A jog not renewed for its interval stops after that many slots of time: the 12 slots a late wake-up
+    skipped count (was: executed cycles, so the jog ran on 12 ms past its dead man)."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    try:
+        rt = loop.axes["x"]
+        fired = {}
+        deadman = 100
+        stop = rt.traj.stop
+
+        def on_stop() -> None:  # called in the loop's cycle where the dead man fires
+            fired.setdefault("slot", loop.slot)
+            fired.setdefault("cycle", loop.cycle)
+            stop()
+
+        def jog() -> None:
+            rt.traj.stop = on_stop
+            rt.traj.move_to(rt.traj.position + 0.01, 0.005)
+            rt.jog_until = loop.slot + deadman
+            fired["from_slot"], fired["from_cycle"] = loop.slot, loop.cycle
+            stall["s"] = 0.012  # the next sleep wakes 12 ms late: 12 slots skipped
+
+        loop.submit(jog)
+        assert loop.run_until(lambda: "slot" in fired, 30.0)
+        assert fired["slot"] - fired["from_slot"] == deadman, fired
+        assert fired["cycle"] - fired["from_cycle"] <= deadman - 10, fired  # fewer cycles ran than slots passed
+        assert loop.status()["skipped_cycles"] >= 10
+    finally:
+        loop.close()
+        m.close()
+
+
+def test_after_a_late_wake_up_a_profile_run_finds_its_reference_where_the_time_is(tmp_path):
+    """As a move's: a profile run's reference is a function of time, so the 4 slots a 4.6 ms late wake-up
+    skipped are skipped in the run too (was: its cursor moved one row while the axis moved five), and the
+    run's record has no row for the skipped slots (no sample was taken there: its time jumps over them)."""
+    from drivectl.controllers.runtime.cycle import Channel
+    from drivectl.controllers.runtime.handles import ProfileRun
+    from drivectl.controllers.runtime.servo import plan_run
+    from drivectl.profiles.ptp import PointToPoint
+
+    stall = {"s": 0.0}
+    hold = {"at": None, "held": threading.Event(), "go": threading.Event()}
+    m, loop, seen = _sim_loop(tmp_path, stall, hold)
+    try:
+        rt = loop.axes["x"]
+        here = rt.traj.position
+        ch = rt.ch
+        plan = plan_run([Channel(ch.axis, ch.controller, PointToPoint(here, here + 0.08, 0.05, 1.0, 40.0),
+                                 ch.limits)], chunk=None)
+        run = ProfileRun(plan, rec=np.zeros((3, plan.n)))
+
+        def begin() -> None:
+            rt.run = run
+
+        loop.submit(begin)
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 600, 30.0)  # cruising
+        assert rt.velocity == pytest.approx(0.05, rel=0.02)
+        ring = rt.ring
+        before = ring.count
+        k0 = run.k
+        hold["at"] = loop.slots + 100
+        stall["s"] = 0.0046
+        assert hold["held"].wait(30.0) and "servo_k" in seen
+        assert loop.status()["skipped_cycles"] == 4 and not loop.faults
+        rows, _ = ring.window(ring.count - before + 1)
+        ref, pos = rows[0], rows[1]
+        assert np.max(np.abs(ref - pos)) < 1e-6  # the law sees the axis where the run's reference is
+        assert np.max(np.abs(np.diff(ref))) == pytest.approx(5 * 0.05 * 1e-3, rel=0.05)  # the reference skipped
+        assert int(run.skipped[k0:run.k].sum()) == 4  # the skipped slots: no row in the run's trace
+    finally:
+        hold["go"].set()
+        loop.close()
+        m.close()
+
+
+def test_a_stall_while_enabling_is_caught_once_the_drive_may_be_in_operation_enabled(tmp_path):
+    """The master watches an axis while enabling from Ready To Switch On on (the drive may enter Operation
+    Enabled before the loop reads it and takes it up), not only in servo: a 0.5 s stall there faults and
+    stops it (was: not watched)."""
+    from drivectl.controllers.runtime.loop import AxisState
+
+    stall = {"s": 0.0}
+    once = {"done": False}
+
+    def when(loop) -> bool:
+        rt = loop.axes["x"]
+        if not once["done"] and rt.state is AxisState.ENABLING and rt.ch.axis.power in (
+                cia402.PowerState.READY_TO_SWITCH_ON, cia402.PowerState.SWITCHED_ON):
+            once["done"] = True
+            return True
+        return False
+
+    m, loop, seen = _sim_loop(tmp_path, stall, when=when)
+    try:
+        assert loop.run_until(lambda: loop.faults or loop.axes["x"].state is AxisState.SERVO and loop.slots > 1000,
+                              30.0)
+        assert once["done"] and loop.faults, loop.status()
+        f = loop.faults[0]
+        assert f.kind == "servo loop stalled" and "bound 17 ms" in f.detail
+        assert m.axes["x"].power is not cia402.PowerState.OPERATION_ENABLED
+    finally:
+        loop.close()
+        m.close()

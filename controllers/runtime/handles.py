@@ -151,6 +151,16 @@ class ProfileRun:
         self.refs = self.plan.refs[0]  # r, r', r'', r''' per cycle (offset applied)
         self.n = self.plan.n
         self.rows = [self.rec[j] for j in range(len(self.rec))]  # row views: element writes in the cycle
+        self.skipped = np.zeros(self.rec.shape[1], dtype=bool)  # rows a late wake-up skipped (no sample)
+
+    def skip(self, cycles: int) -> None:
+        """A late wake-up skipped ``cycles`` slots: the reference is a function of time, as a move's is
+        (Trajectory.skip), so the cursor moves on with the slots; their rows are marked skipped (no sample
+        was taken: the run's trace has no row there, its time jumps over them as the streamed record's does)."""
+        end = min(self.k + cycles, self.n)
+        if end > self.k:
+            self.skipped[self.k:end] = True
+            self.k = end
 
     def next(self) -> Reference:
         k = self.k if self.k < self.n else self.n - 1

@@ -98,7 +98,7 @@ class AxisRuntime:
         self.servo_k = 0  # cycles since it was enabled (what the limit checks count)
         self.handle: Move | None = None
         self.run: ProfileRun | None = None
-        self.jog_until = 0  # loop cycle at which an unrenewed jog stops (0: no jog)
+        self.jog_until = 0  # loop slot (Loop.slot) at which an unrenewed jog stops (0: no jog)
         self.move_started = False
         self.ring = Ring(ring_size)
         self.captures: list[Capture] = []
@@ -170,6 +170,7 @@ class ServoLoop:
         self.worst_late = 0.0
         self.stalls = 0
         self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
+        self.slot = 0  # the slot the next cycle runs in, either clock (a late wake-up skips some): the dead man's count
         self.skipped = 0  # slots skipped because the loop was that far behind
         self.gc_runs = 0
         self.gc_worst = 0.0
@@ -292,6 +293,7 @@ class ServoLoop:
                 except Exception as exc:  # noqa: BLE001 - a command that fails must not end the loop
                     self.command_errors.append(f"{type(exc).__name__}: {exc}")
             k = self.cycle
+            self.slot += self._elapsed - 1  # the slots skipped before this cycle count for a jog's dead man
             if self._elapsed > 1:  # woke late: the axes' next samples belong to the slot this cycle runs in
                 for rt in self._rts:
                     rt.ch.axis.skip(self._elapsed - 1)
@@ -310,6 +312,7 @@ class ServoLoop:
                 self._fault(Fault(FaultKind.LOOP_ERROR, self._rts[0].name, k,
                                   f"the servo loop raised {type(exc).__name__}: {exc}"), StopReason.FAULT)
             self.cycle += 1  # (a stop's own cycles were counted as they ran)
+            self.slot += 1
 
     def _axis_named(self, exc: Exception) -> str:
         text = str(exc)
@@ -324,11 +327,13 @@ class ServoLoop:
         if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
             ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
             ch.controller.skipped(self._elapsed - 1)
-            if run is None:  # a move's reference is a function of time (a run's: of its recorded rows)
+            if run is None:  # a move's reference and a run's are functions of time: they skip as many slots
                 rt.traj.skip(self._elapsed - 1)
+            else:
+                run.skip(self._elapsed - 1)
         if rt.offset:
             fb = Feedback(fb.time, fb.position - rt.offset, fb.velocity)
-        if rt.jog_until and k >= rt.jog_until:
+        if rt.jog_until and self.slot >= rt.jog_until:  # in slots: a late wake-up's skipped ones count
             rt.jog_until = 0
             rt.traj.stop()  # dead man: the jog was not renewed
         if run is not None:
@@ -491,6 +496,7 @@ class ServoLoop:
         """One cycle of a stop (controllers/runtime/safe_stop.py): every axis's sample into its ring, so a
         fault capture's post-trigger samples show the stop itself."""
         self.cycle += 1
+        self.slot += 1
         k = self.cycle
         for rt in self._rts:
             fb = samples.get(rt.name)
@@ -609,11 +615,21 @@ class ServoLoop:
         d = self.deadlines[rt if isinstance(rt, str) else rt.name]
         return d if d > 0 else math.inf
 
+    @staticmethod
+    def _watched(rt: AxisRuntime) -> bool:
+        """Is the drive (possibly) in Operation Enabled? In servo, and while enabling from Ready To Switch On
+        on: the enable's controlwords are written in a cycle, the drive enters Operation Enabled at the next
+        SYNC, and the loop reads it a cycle later; a stall in between leaves a powered drive unwatched."""
+        return rt.state is AxisState.SERVO or (
+            rt.state is AxisState.ENABLING
+            and rt.ch.axis.power in (PowerState.READY_TO_SWITCH_ON, PowerState.SWITCHED_ON,
+                                     PowerState.OPERATION_ENABLED))
+
     def _on_stall(self, gap: float) -> None:
         """A gap past an enabled axis's deadline is a fault (drivectl's own clock; the drive's catches the
         same from its side); a shorter one is a missed cycle, counted, not a fault."""
         self._stalled = False
-        over = [rt for rt in self._rts if rt.state is AxisState.SERVO and gap > self.bound_of(rt)]
+        over = [rt for rt in self._rts if self._watched(rt) and gap > self.bound_of(rt)]
         if not over:
             return
         self.stalls += 1
@@ -634,7 +650,7 @@ class ServoLoop:
             if self._now() - last > 2 * self._watch_s:
                 self._stalled = True
                 for rt in self._rts:
-                    if rt.state is AxisState.SERVO:
+                    if self._watched(rt):
                         quietly(rt.ch.axis.quick_stop)
                         quietly(rt.ch.axis.write, 0.0)
 

@@ -149,5 +149,7 @@ def test_store_from_the_configuration_and_the_machine_name_checked(tmp_path, tra
     assert main(["health", "ingest", str(a), "--machine", "m1"]) == 0
     assert len(_catalog(tmp_path / "xdg" / "drivectl" / "health")) == 1
     capsys.readouterr()
-    assert main(["health", "ingest", str(a), "--machine", "../up", "--store", str(tmp_path / "s")]) == 2
-    assert "--machine" in capsys.readouterr().err
+    assert main(["health", "ingest", str(a), str(a), "--machine", "../up", "--store", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--machine" in err[0]
+    assert not (tmp_path / "s").exists()  # refused before the store is made

@@ -74,6 +74,9 @@ def _ingest(args: argparse.Namespace) -> int:
 
     root, cfg = store_path(args)
     counts = {"added": 0, "present": 0, "refused": 0}
+    from drivectl.tools.health.store import check_machine
+
+    check_machine(args.machine)
     with Store(root) as store:
         outcomes = store.ingest_all(args.traces, args.machine, axis=args.axis, config=cfg)
         for o in tqdm(outcomes, total=len(args.traces), unit="trace", disable=None, leave=False):

@@ -166,7 +166,9 @@ class Store:
 
     def ingest_all(self, paths: Iterable[str | Path], machine: str, *, axis: str | None = None,
                    config: Any = None) -> Iterator[Outcome]:
-        """:meth:`ingest` each file; a refused one is reported and the others go on."""
+        """:meth:`ingest` each file; a refused one is reported and the others go on (a bad ``machine`` is
+        refused once, before any file)."""
+        check_machine(machine)
         for p in paths:
             try:
                 yield self.ingest(Path(p), machine, axis=axis, config=config)
@@ -176,8 +178,7 @@ class Store:
     def ingest(self, path: Path, machine: str, *, axis: str | None = None, config: Any = None) -> Outcome:
         """Keep one trace (or bus log) in the store. Raises :class:`InputError` (one line naming the file)
         for a file that is unreadable, incomplete or not a trace."""
-        if not safe_name(machine):
-            raise InputError(f"--machine {machine!r}: expected letters, digits, _ + - (a file name stem)")
+        check_machine(machine)
         try:
             sha = sha256_of(path)
         except FileNotFoundError:
@@ -212,6 +213,11 @@ class Store:
             self.con.rollback()
             raise
         return Outcome(path, "added", sha256=sha)
+
+
+def check_machine(machine: str) -> None:
+    if not safe_name(machine):
+        raise InputError(f"--machine {machine!r}: expected letters, digits, _ + - (a file name stem)")
 
 
 def _duration(trace: Trace) -> float:

@@ -123,6 +123,9 @@ clipped_fault = 0.5
 extrapolated_warn = 0.005       # cycles run on an extrapolated position (TPDO lost or malformed)
 extrapolated_fault = 0.05
 fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines in the first second, stop a run
+
+# [health]
+# store = "health"              # drivectl health's store (docs/health.md); default: the user's data folder
 """
 
 

@@ -144,6 +144,15 @@ def test_store_from_the_configuration_and_the_machine_name_checked(tmp_path, tra
     cfg.write_text(DEFAULT_CONFIG_TOML + '\n[health]\nstore = "health-store"\n')
     assert main(["--config", str(cfg), "health", "ingest", str(a), "--machine", "m1"]) == 0
     assert len(_catalog(tmp_path / "health-store")) == 1
+    from drivectl.machine.config import load_config
+    from drivectl.machine.config_io import show_text
+
+    shown = show_text(load_config(cfg))
+    assert f'[health]\nstore = "{tmp_path / "health-store"}"' in shown
+    bad = tmp_path / "bad.toml"
+    bad.write_text(DEFAULT_CONFIG_TOML + '\n[health]\nstores = "x"\n')
+    assert main(["--config", str(bad), "health", "ingest", str(a), "--machine", "m1"]) == 2
+    assert "health.stores: unknown key" in capsys.readouterr().err
     monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
     monkeypatch.delenv("DRIVECTL_CONFIG", raising=False)
     assert main(["health", "ingest", str(a), "--machine", "m1"]) == 0

@@ -162,3 +162,28 @@ def test_store_from_the_configuration_and_the_machine_name_checked(tmp_path, tra
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--machine" in err[0]
     assert not (tmp_path / "s").exists()  # refused before the store is made
+
+
+def test_a_bus_log_goes_in_through_the_converter_and_is_refused_without_it(tmp_path, monkeypatch):
+    import types
+
+    log = tmp_path / "quench.asc"
+    log.write_text("date Thu Dec 3 08:00:00 2026\n")
+    store = tmp_path / "store"
+    with Store(store) as s:
+        monkeypatch.setitem(sys.modules, "drivectl.tools.buslog", None)  # no converter: import fails
+        out = list(s.ingest_all([log], "m1"))
+        assert out[0].status == "refused" and str(log) in out[0].detail and "bus log" in out[0].detail
+        calls = []
+
+        def log_to_trace(path, *, axis, out_dir, node=None, eds=None, config=None):
+            calls.append((Path(path), axis))
+            return _trace(Path(out_dir) / f"{axis}.csv", 120, 9, axis=axis)
+
+        fake = types.SimpleNamespace(is_bus_log=lambda p: Path(p).suffix == ".asc", log_to_trace=log_to_trace)
+        monkeypatch.setitem(sys.modules, "drivectl.tools.buslog", fake)
+        assert s.ingest(log, "m1", axis="y").status == "added"
+        assert calls == [(log, "y")]
+        (run,) = s.runs()
+        assert run["axis"] == "y" and run["samples"] == 120 and run["started_from"] == "mtime"
+        assert s.ingest(log, "m1", axis="y").status == "present"  # the log's sha256

@@ -187,3 +187,10 @@ def test_a_bus_log_goes_in_through_the_converter_and_is_refused_without_it(tmp_p
         (run,) = s.runs()
         assert run["axis"] == "y" and run["samples"] == 120 and run["started_from"] == "mtime"
         assert s.ingest(log, "m1", axis="y").status == "present"  # the log's sha256
+
+
+def test_without_the_health_extra_one_line_names_it(tmp_path, traces, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "duckdb", None)
+    assert main(["health", "ingest", str(traces[0]), "--machine", "m1", "--store", str(tmp_path / "s")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "duckdb" in line and "pip install 'drivectl[health]'" in line

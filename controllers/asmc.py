@@ -72,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from drivectl.controllers.base import SCALAR_OPS, Controller, Settings, SettingsError, choice, param
+from drivectl.controllers.base import SCALAR_OPS, Controller, Settings, SettingsError, choice, outside_band, param
 from drivectl.driver.axis import Feedback
 from drivectl.profiles.base import Reference
 
@@ -120,6 +120,9 @@ class AsmcSettings(Settings):
                                    doc="integral action at standstill (the reference rests, the axis sticks) "
                                    "on the error outside standstill_band_m; 0: the paper's law (docs/standstill.md)")
     standstill_band_m: float = param(1.5e-7, lo=0.0, unit="m", doc="standstill: the error left alone")
+    standstill_s: float = param(0.05, lo=0.0, lo_open=True, unit="s",
+                                doc="standstill: integral time; the stiffness on the error outside the band is "
+                                "standstill_gain x standstill_s (mbc's standstill, docs/standstill.md)")
 
     def validate(self, source: str = "settings", prefix: str = "") -> None:
         super().validate(source, prefix)
@@ -241,11 +244,12 @@ class Asmc(Controller):
                 m["mass"], m["c_pos"], m["c_neg"], m["fc_pos"], m["fc_neg"],
                 s.friction_sign == "reference", float(s.friction_band) * 1e-3,
             )
-        #: the standstill integral force, N: built only while the reference rests and the axis sticks,
-        #: released when the reference moves (docs/standstill.md)
+        #: the standstill integral force, N (its stiffness part aside): built only while the reference rests
+        #: and the axis sticks, started from the law's last Coulomb compensation (docs/standstill.md)
         self.hold_force = 0.0
         self._hold_rate = float(s.standstill_gain) * 1e6 * self.dt  # N per m of error per cycle
         self._hold_band = float(s.standstill_band_m)
+        self._hold_stiffness = float(s.standstill_gain) * 1e6 * float(s.standstill_s)  # N/m
 
     def adapt(self, s_mm: Any) -> Any:
         """One cycle of the gain law for surface ``s_mm`` (mm/s): k += dt dk/dt, clamped. Returns k."""
@@ -287,7 +291,7 @@ class Asmc(Controller):
             coul = fc_pos if vs > 0.0 else -fc_neg if vs < 0.0 else 0.0
         f = mass * acc + h * sat + visc + coul
         if self._hold_rate:
-            f += self._standstill(reference, v, e)
+            f += self._standstill(reference, v, e, coul)
         # adaptation (after the effort: this cycle used k(t_k)); inline gain_rate for speed
         law = self._law
         if law == 14:
@@ -303,21 +307,25 @@ class Asmc(Controller):
         self.s_mm = s_mm
         return f
 
-    def _standstill(self, reference: Reference, v: float, e: float) -> float:
-        """The standstill integral force (docs/standstill.md): at rest the law's own stiffness, M k lambda
-        (0.5 N/um on y), cannot pass the Coulomb friction (51 N) short of a 100 um error, so a resting
-        axis stands where it stuck. While the reference rests and the axis sticks the force integrates the
-        error outside the band; it is held while the axis slips, and released as the reference moves
-        (the law's own Coulomb compensation takes over)."""
+    def _standstill(self, reference: Reference, v: float, e: float, coul: float) -> float:
+        """The standstill force (docs/standstill.md), mbc's standstill on this law: at rest the law's own
+        stiffness, M k lambda (0.5 N/um on y), cannot pass the Coulomb friction (51 N) short of a 100 um
+        error, so a resting axis stands where it stuck. While the reference rests, a stiffness
+        (standstill_gain x standstill_s, 15 N/um on y, mbc's on x) acts on the error outside the band, and
+        while the axis also sticks the integral of that error builds (held while the axis slips): the
+        integral breaks the axis away, the stiffness stops its slip near the target instead of letting
+        the integral, at the breakaway level, carry it through to the other side (the hunting under
+        force noise). Both are released as the reference moves (the law's own Coulomb compensation takes
+        over)."""
         if reference.velocity != 0.0 or reference.acceleration != 0.0:
-            self.hold_force = 0.0
-        elif -CREEP_M_S < v < CREEP_M_S:
-            band = self._hold_band
-            if e > band:
-                self.hold_force += self._hold_rate * (e - band)
-            elif e < -band:
-                self.hold_force += self._hold_rate * (e + band)
-        return self.hold_force
+            # while moving, what the hold starts from: the law's Coulomb compensation of the last moving
+            # cycle (mbc keeps its disturbance estimate, the friction, where the motion left it)
+            self.hold_force = coul
+            return 0.0
+        out = outside_band(e, self._hold_band)
+        if -CREEP_M_S < v < CREEP_M_S:
+            self.hold_force += self._hold_rate * out
+        return self.hold_force + self._hold_stiffness * out
 
     def _step_array(self, reference: Reference, feedback: Feedback) -> np.ndarray:
         """The same law on numpy arrays (a batch of gain sets; feedback may be arrays too)."""

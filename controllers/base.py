@@ -182,6 +182,12 @@ SCALAR_OPS = ScalarOps()
 ARRAY_OPS = ArrayOps()
 
 
+def outside_band(e: float, band: float) -> float:
+    """The part of error ``e`` outside the band +-``band`` (0 inside): what a standstill's integral and
+    stiffness act on, the error inside being left to the stiction (docs/standstill.md)."""
+    return e - band if e > band else e + band if e < -band else 0.0
+
+
 def ops_for(settings: Settings) -> ScalarOps | ArrayOps:
     """Array maths when any gain is an array (a batch), scalar maths otherwise."""
     for value in settings.as_dict().values():

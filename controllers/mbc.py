@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg import solve_discrete_are
 
-from drivectl.controllers.base import Controller, Settings, SettingsError, choice, param
+from drivectl.controllers.base import Controller, Settings, SettingsError, choice, outside_band, param
 from drivectl.controllers.linear_model import LinearModel, discretise
 from drivectl.driver.axis import Feedback
 from drivectl.profiles.base import Reference
@@ -402,11 +402,7 @@ class Mbc(Controller):
         s[1:n:2] = 0.0
         s[n + 1] = 0.0
         e = reference.position - feedback.position
-        band = self._hold_band
-        if e > band:
-            s[n] -= self._hold_gain * (e - band)
-        elif e < -band:
-            s[n] -= self._hold_gain * (e + band)
+        s[n] -= self._hold_gain * outside_band(e, self._hold_band)
         u_net = ffk - float(np.dot(self._Kf, s))
         self._u_prev = u_net
         self._fk = fk

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import can
 import canopen
@@ -30,10 +30,50 @@ PEER_RTT_FACTOR = 10.0
 
 @dataclass(frozen=True)
 class Identity:
-    """What 0x1018 must say (None: not checked)."""
+    """What 0x1018 must say (None: not checked); ``source`` names the configuration it comes from (the file
+    whose line to change on a mismatch), None where no file states it."""
 
     vendor_id: int | None = None
     product_code: int | None = None
+    revision: int | None = None
+    source: str | None = None
+
+    def lines(self) -> str:
+        """The expectation as said: ``vendor 0x.. product 0x..`` or ``nothing (identity = "off")``."""
+        said = ", ".join(f"{n} 0x{v:08X}" for n, v in zip(_ID_NAMES, self._values(), strict=False) if v is not None)
+        return said or "nothing (no identity check)"
+
+    def _values(self) -> tuple[int | None, int | None, int | None]:
+        return self.vendor_id, self.product_code, self.revision
+
+
+_ID_NAMES = ("vendor", "product", "revision")
+#: [axes.NAME] identity: what the boot compares of 0x1018 (docs/drives.md); revision: vendor, product and revision
+IDENTITY_CHECKS = ("vendor+product", "vendor", "revision", "off")
+
+
+@dataclass(frozen=True)
+class IdentityCheck:
+    """The configuration's identity check: which fields (``check``, one of :data:`IDENTITY_CHECKS`) and their
+    values where the file states them (None: the EDS's [DeviceInfo]; 0 or absent there: not checked)."""
+
+    check: str = "vendor+product"
+    vendor_id: int | None = None
+    product_code: int | None = None
+    revision: int | None = None
+    source: str | None = field(default=None, compare=False)  # the file (for the line to change on a mismatch)
+
+    def against(self, info: odt.DeviceInformation) -> Identity:
+        """The :class:`Identity` the boot compares, the values the file leaves out taken from ``info``."""
+        def stated(mine: int | None, eds: int | None) -> int | None:
+            return mine if mine is not None else (eds or None)  # an EDS's 0 states nothing
+
+        if self.check == "off":
+            return Identity(source=self.source)
+        vendor = stated(self.vendor_id, info.vendor_number)
+        product = stated(self.product_code, info.product_number) if self.check != "vendor" else None
+        revision = stated(self.revision, info.revision_number) if self.check == "revision" else None
+        return Identity(vendor, product, revision, self.source)
 
 
 class AxisBoot:
@@ -176,17 +216,24 @@ class AxisBoot:
         if not self._has(cia402.IDENTITY, 1, writable=False):
             self.identity = Identity()  # no 0x1018 in the EDS: nothing to check against
             return
-        vendor = self._sdo(cia402.IDENTITY, 1)
-        product = self._sdo(cia402.IDENTITY, 2) if self._has(cia402.IDENTITY, 2, writable=False) else 0
         want = self.identity
-        if (want.vendor_id is not None and vendor != want.vendor_id) or (
-            want.product_code is not None and self._has(cia402.IDENTITY, 2, writable=False)
-            and product != want.product_code
-        ):
-            raise AxisConfigError(
-                f"axis {self.name}: node {self.node_id}: identity vendor 0x{vendor:08X} product 0x{product:08X}, "
-                f"the configuration expects vendor 0x{want.vendor_id or 0:08X} product 0x{want.product_code or 0:08X}"
-            )
+        got = tuple(self._sdo(cia402.IDENTITY, sub) if self._has(cia402.IDENTITY, sub, writable=False) else None
+                    for sub in (1, 2, 3))
+        self.identity_answered = got
+        wrong = [n for n, w, g in zip(_ID_NAMES, want._values(), got, strict=True) if w is not None and g is not None
+                 and w != g]
+        if not wrong:
+            return
+        answered = ", ".join(f"{n} 0x{v:08X}" for n, v in zip(_ID_NAMES, got, strict=True) if v is not None)
+        # the one line that lets this drive boot: a looser check (a wrong vendor is most likely the wrong EDS)
+        loose = {"revision": "vendor+product", "product": "vendor", "vendor": "off"}[wrong[0]]
+        where = (f'set identity = "{loose}" under [axes.{self.name}] in {want.source}' if want.source else
+                 f'pass identity=Identity() or configure identity = "{loose}" under [axes.{self.name}]')
+        extra = " (or name this drive's own EDS in eds)" if wrong[0] == "vendor" else ""
+        raise AxisConfigError(
+            f"axis {self.name}: node {self.node_id}: identity: the device answered {answered}, the configuration "
+            f"expects {want.lines()} ({' and '.join(wrong)} differ{'s' if len(wrong) == 1 else ''}): {where}{extra}"
+        )
 
     def _has(self, index: int, sub: int = 0, writable: bool = True) -> bool:
         """The EDS has index:sub (and lets it be written)."""

@@ -46,7 +46,7 @@ import canopen
 
 from drivectl.driver import cia402
 from drivectl.driver.axis import LAST_RESORTS, Axis, AxisConfigError, AxisError, FaultKind, Feedback
-from drivectl.driver.axis_boot import AxisBoot, Identity
+from drivectl.driver.axis_boot import AxisBoot, Identity, IdentityCheck
 from drivectl.driver.axis_stop import AxisStop
 from drivectl.driver.capabilities import DriveRefused, assess
 from drivectl.driver.cia301 import (
@@ -77,7 +77,7 @@ from drivectl.driver.running_time import RunningTimeSdoClient, wait_running
 from drivectl.driver.sync_clock import SyncClock
 from drivectl.driver.units import EffortScale, Encoder
 
-__all__ = ["CanopenAxis", "Identity", "SyncClock"]
+__all__ = ["CanopenAxis", "Identity", "IdentityCheck", "SyncClock"]
 
 #: the states a heartbeat may report (CiA 301): boot-up, Stopped, Operational, Pre-operational
 _HEARTBEAT_STATES = frozenset(int(s) for s in NmtState)
@@ -122,7 +122,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         encoder: Encoder,
         effort_scale: EffortScale,
         clock: SyncClock | None = None,
-        identity: Identity | None = None,
+        identity: Identity | IdentityCheck | None = None,
         heartbeat_ms: int = 100,
         timeout: float = 2.0,
         tpdo_timeout: float = 0.1,
@@ -191,8 +191,10 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self._awaiting_boot = False  # a reset another master sent: SDO waits for the boot-up
         self._sent_stop = False  # our NMT Stop is out: the state is asked after Pre-operational
         self.od = od
-        self.identity = identity if identity is not None else Identity(
-            od.device_information.vendor_number, od.device_information.product_number)
+        # what 0x1018 must say: given, else the configuration's check against the EDS's [DeviceInfo]
+        self.identity = identity if isinstance(identity, Identity) else (identity or IdentityCheck()).against(
+            od.device_information)
+        self.identity_answered: tuple[int | None, ...] | None = None  # 0x1018:1-3 as read at boot
         self.node = _Node(node_id, od)
         self._sdo_timeout = self.node.sdo.RESPONSE_TIMEOUT  # canopen's default (0.3 s)
         network.add_node(self.node)

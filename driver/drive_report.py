@@ -38,8 +38,10 @@ def drive_lines(axis: CanopenAxis) -> list[tuple[str, str]]:
     out: list[tuple[str, str]] = []
     ident = [_read(axis, cia402.IDENTITY, s) for s in (1, 2, 3, 4)]
     names = ("vendor", "product", "revision", "serial")
-    out.append(("identity", ", ".join(f"{n} 0x{v:08X}" for n, v in zip(names, ident, strict=True) if v is not None)
-                or "0x1018 not readable"))
+    answered = ", ".join(f"{n} 0x{v:08X}" for n, v in zip(names, ident, strict=True) if v is not None)
+    out.append(("identity answered", answered or "0x1018 not readable"))
+    out.append(("identity expected", axis.identity.lines()
+                + (f" ({axis.identity.source})" if getattr(axis.identity, "source", None) else "")))
     dtype = _read(axis, cia402.DEVICE_TYPE)
     if dtype is not None:
         out.append(("device type", f"0x{dtype:08X} (profile {dtype & 0xFFFF})"))

@@ -298,7 +298,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            max_effort=ac.limits.max_effort, last_resort=ac.last_resort,
                            mapping=resolve_mapping(cfg, len(names)),
                            rated_effort_source=ac.rated_effort_source,
-                           sdo_init=ac.sdo_init)
+                           sdo_init=ac.sdo_init, identity=ac.identity)
         axis.enable_settle_s = ac.enable_settle_s
         axis.connect()
         machine.axes[name] = axis

@@ -246,6 +246,9 @@ class AxisConfig:
     #: where rated_effort came from ("FILE: axes.NAME.rated_effort"), None: the built-in default (a drive without
     #: 0x6076 then refuses: the effort of 1000 per mille must come from the motor's data)
     rated_effort_source: str | None = field(default=None, compare=False)
+    #: [axes.NAME] identity, vendor_id, product_code, revision: what the boot compares of 0x1018
+    #: (driver/axis_boot.py IdentityCheck; the values the file leaves out come from the EDS's [DeviceInfo])
+    identity: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -336,7 +339,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
                    "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
                    "homing", "emulator", "last_resort", "sdo_init",
-                   "enable_settle_ms"}
+                   "enable_settle_ms", "identity", "vendor_id", "product_code", "revision"}
         extra = set(raw) - allowed
         if extra:
             raise ConfigError(f"{src}: {k}.{sorted(extra)[0]}: unknown key")
@@ -413,6 +416,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             sdo_init=_sdo_init(src, f"{k}.sdo_init", raw.get("sdo_init", [])),
             enable_settle_s=_settle_ms(src, f"{k}.enable_settle_ms", raw.get("enable_settle_ms", 0)) / 1000.0,
             rated_effort_source=f"{src}: {k}.rated_effort" if "rated_effort" in raw else None,
+            identity=_identity(src, k, raw),
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -457,6 +461,21 @@ def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:
             raise ConfigError(f"{src}: {key}[{n}]: index 0x1000..0xFFFF and sub 0..255, got {index:#x}:{sub}")
         out.append((index, sub, value))
     return tuple(out)
+
+
+def _identity(src: str, key: str, raw: dict[str, Any]) -> Any:
+    """[axes.NAME] identity (one of IDENTITY_CHECKS) and the 32-bit vendor_id, product_code, revision."""
+    from drivectl.driver.axis_boot import IDENTITY_CHECKS, IdentityCheck
+
+    values = {}
+    for name in ("vendor_id", "product_code", "revision"):
+        if name in raw:
+            v = raw[name]
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 0xFFFFFFFF:
+                raise ConfigError(f"{src}: {key}.{name}: expected a 32-bit unsigned integer (0x1018), got {v!r}")
+            values[name] = v
+    check = _choice(src, f"{key}.identity", raw.get("identity", "vendor+product"), IDENTITY_CHECKS)
+    return IdentityCheck(check, source=src if src != "<embedded default>" else None, **values)
 
 
 def _choice(src: str, key: str, value: Any, choices: tuple[str, ...]) -> str:

@@ -93,6 +93,14 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
             t.add("enable_settle_ms", ac.enable_settle_s * 1000.0)
         if ac.sdo_init:
             t.add("sdo_init", [list(entry) for entry in ac.sdo_init])
+        if ac.identity is not None:
+            t.add("identity", ac.identity.check)
+            for key in ("vendor_id", "product_code", "revision"):
+                value = getattr(ac.identity, key)
+                if value is not None:
+                    t.add(key, value)
+                else:
+                    t.add(tomlkit.comment(f"{key} not set: the EDS's [DeviceInfo] (0 or absent there: not checked)"))
         if ac.rpdo_timeout_ms is not None:
             t.add("rpdo_timeout_ms", ac.rpdo_timeout_ms)
         else:

@@ -41,6 +41,21 @@ def plan_bits(frames: list[tuple[str, int, bool]]) -> tuple[int, int]:
     return sum(b[0] for b in bits), sum(b[1] for b in bits)
 
 
+def _identity_lines(info: canopen.objectdictionary.DeviceInformation) -> list[str]:
+    """The identity check and the values of [DeviceInfo] (0 or absent there: not stated, not checked)."""
+    out = ['identity = "vendor+product"     # 0x1018 compared at boot: vendor+product | vendor | off | revision',
+           "#   (revision: vendor, product and the exact revision below)"]
+    for key, value, what in (("vendor_id", info.vendor_number, "VendorNumber"),
+                             ("product_code", info.product_number, "ProductNumber"),
+                             ("revision", info.revision_number, "RevisionNumber")):
+        if value:
+            out.append(f"{key} = 0x{value:08X}".ljust(32) + f"# [DeviceInfo] {what}")
+        else:
+            out.append(f"# {key}: the EDS's [DeviceInfo] states no {what}: {key.split('_')[0]} not checked")
+    out.append('#   a sibling product or another firmware answers other codes: identity = "vendor" then')
+    return out
+
+
 def starter_config(eds: str | Path, axis: str = "x", node_id: int = 1) -> str:
     """The commented configuration text; :class:`~drivectl.driver.capabilities.DriveRefused` (one line) where
     the drive lacks an essential."""
@@ -71,6 +86,7 @@ def starter_config(eds: str | Path, axis: str = "x", node_id: int = 1) -> str:
         f"[axes.{axis}]",
         f"node_id = {node_id}",
         f'eds = "{path}"',
+        *_identity_lines(info),
         f"# mode: {MODE_NAMES[caps.mode]}, from {caps.modes_source} (0x{caps.modes:08X}); the",
         "#   device's own 0x6502 is read again at boot",
         f"# PDO mapping (full), within this drive's limits; bus budget {nominal} bits per cycle for this axis "

@@ -178,6 +178,13 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         ident = self.od[cia402.IDENTITY] if cia402.IDENTITY in self.od else None
         self._has_serial = ident is not None and not isinstance(ident, canopen.objectdictionary.ODVariable) \
             and 4 in ident.subindices
+        # 0x1018:1-3 without a usable default (absent or 0) answer what [DeviceInfo] declares, as the real
+        # drive answers its own identity (docs/drives.md)
+        info = self.od.device_information
+        declared = {1: info.vendor_number, 2: info.product_number, 3: info.revision_number}
+        self._identity = {sub: struct.pack("<I", value & 0xFFFFFFFF) for sub, value in declared.items()
+                          if value and ident is not None and not isinstance(ident, canopen.objectdictionary.ODVariable)
+                          and sub in ident.subindices and not object_value(ident.subindices[sub])}
         self._restore(application=True)
         network.subscribe(self._sync_cob, self._on_sync)
         subscribe_remote(network, self._sync_cob, self._on_remote)
@@ -225,6 +232,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         # one serial number per emulated drive (the EDS default would make every drive look alike)
         if self._has_serial:
             store.setdefault(cia402.IDENTITY, {})[4] = struct.pack("<I", self.node_id)
+        for sub, raw in self._identity.items():
+            store.setdefault(cia402.IDENTITY, {})[sub] = raw
         self._heartbeat_ms = self._od_default(cia402.PRODUCER_HEARTBEAT_TIME, absent=0)
         self._heartbeat_cycles = 0
         if self._consumer is not None:

@@ -98,7 +98,7 @@ def test_boot_configures_cst_and_the_pdo_mapping_reads_back(bench):
 def test_wrong_identity_is_refused(bench):
     bench.drive(1)
     ax = bench.axis(1, connect=False, identity=Identity(vendor_id=0x12345678))
-    with pytest.raises(AxisError, match=r"identity vendor 0x00D71C70.*expects vendor 0x12345678"):
+    with pytest.raises(AxisError, match=r"answered vendor 0x00D71C70.*expects vendor 0x12345678.*vendor differs"):
         ax.connect()
 
 

@@ -262,7 +262,8 @@ def test_enable_attempt_says_why_the_drive_does_not_enable(tmp_path, how, says):
     with open_machine(load_config(_config(tmp_path, EMULATED_DRIVE_EDS)), ["x"]) as m:
         ax, drive = m.axes["x"], m.drives["x"]
         lines = dict(drive_lines(ax))
-        assert lines["mode"] == "cyclic synchronous torque (10)" and "vendor 0x" in lines["identity"]
+        assert lines["mode"] == "cyclic synchronous torque (10)" and "vendor 0x" in lines["identity answered"]
+        assert "vendor 0x" in lines["identity expected"]
         if how == "sto":
             drive.drive.sto = True
         elif how == "voltage":

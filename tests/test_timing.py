@@ -74,11 +74,12 @@ def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
     assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
 
 
-def _sim_loop(tmp_path, stall, hold=None, when=None):
+def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
     simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept).
     ``hold``: {"at": slot, "held": Event, "go": Event}: the loop's thread stops in its first sleep from that
-    slot on (``held`` set) until ``go`` is set, so a test reads the ring before the loop runs past it."""
+    slot on (``held`` set) until ``go`` is set, so a test reads the ring before the loop runs past it.
+    ``late``: {slot: s}: the first sleep from that slot on wakes s late (a schedule in the loop's own slots)."""
     from drivectl.controllers.registry import make_controller
     from drivectl.controllers.runtime.cycle import Channel
     from drivectl.controllers.runtime.loop import AxisState, ServoLoop
@@ -95,6 +96,8 @@ def _sim_loop(tmp_path, stall, hold=None, when=None):
         if hold is not None and hold["at"] is not None and loop.slots >= hold["at"]:
             hold["held"].set()
             hold["go"].wait(30.0)
+        for at in [at for at in (late or {}) if loop.slots >= at]:
+            stall["s"] += late.pop(at)
         if when is not None and when(loop):
             stall["s"] = 0.5  # the process stopped here (as SIGSTOP does)
         extra, stall["s"] = stall["s"], 0.0
@@ -105,7 +108,7 @@ def _sim_loop(tmp_path, stall, hold=None, when=None):
     ch = Channel(m.axes["x"], make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None,
                  ac.limits)
     loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={"x": m.deadlines["x"].seconds}, now=clock.now,
-                     sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False)
+                     sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False, ring_s=ring_s)
     loop.start()
     rt = loop.axes["x"]
     rt.state = AxisState.ENABLING
@@ -313,6 +316,82 @@ def test_a_stall_while_enabling_is_caught_once_the_drive_may_be_in_operation_ena
         f = loop.faults[0]
         assert f.kind == "servo loop stalled" and "bound 17 ms" in f.detail
         assert m.axes["x"].power is not cia402.PowerState.OPERATION_ENABLED
+    finally:
+        loop.close()
+        m.close()
+
+
+def test_a_capture_across_late_wake_ups_and_the_ring_s_wrap_reads_back_with_the_skips_as_gaps(tmp_path):
+    """The ring records each sample's slot (the time it stands for), not the count of cycles run: a capture
+    across late wake-ups, taken out of a ring that wrapped, has strictly increasing time, and the skipped
+    slots show as gaps, as in a run's trace (docs/trace-format.md); ``pre`` is time, skipped slots included
+    (was: the cycle count, the gaps closed up and the window reached further back than ``pre``)."""
+    from drivectl.controllers.runtime.capture import CHANNELS, Capture, Trigger
+    from drivectl.controllers.runtime.servo import trace_header
+    from drivectl.tracefile.format import Trace
+
+    stall = {"s": 0.0}
+    late: dict[int, float] = {}
+    hold = {"at": None, "held": threading.Event(), "go": threading.Event()}
+    m, loop, seen = _sim_loop(tmp_path, stall, hold, ring_s=0.3, late=late)
+    try:
+        w = loop.slots + 1000  # far enough ahead that the loop's thread has not passed it yet
+        late.update({w: 0.012, w + 60: 0.0046, w + 120: 0.0071})  # 12, 4 and 7 slots skipped
+        hold["at"] = w + 200
+        assert hold["held"].wait(60.0)  # the loop's thread waits in its sleep: the capture is armed there
+        rt = loop.axes["x"]
+        assert not late and rt.ring.count > 3 * rt.ring.size  # the ring wrapped
+        pre = rt.ring.size - 1  # the whole ring: its copy goes round the wrap
+        cap = Capture("x", CHANNELS, Trigger("now"), pre, 0, loop.dt,
+                      trace_header(rt.ch.axis, loop.dt, None, None, paced=True))
+        loop.submit(lambda: rt.captures.append(cap))
+        hold["go"].set()
+        cap.wait(30.0)
+        t = Trace.read(cap.write(tmp_path / "late.csv", plot=False)[0]).time  # the reader refuses time going back
+        steps = np.round(np.diff(t) / loop.dt).astype(int)
+        assert (steps >= 1).all()
+        assert list(steps[steps > 1]) == [13, 5, 8], steps[steps > 1]  # each gap: the skipped slots + 1
+        assert t[-1] == 0.0 and t[0] == pytest.approx(-pre * loop.dt)
+        assert len(t) == pre + 1 - (12 + 4 + 7) and loop.status()["skipped_cycles"] == 23
+        assert not loop.faults
+    finally:
+        hold["go"].set()
+        loop.close()
+        m.close()
+
+
+def _capture_now(loop, pre_s: float, tmp_path, name: str):
+    """A capture of the ring's last ``pre_s`` s (trigger now, as the console's Save trace and the shell's
+    capture take it), written and read back with the trace reader."""
+    from drivectl.controllers.runtime.capture import CHANNELS, Capture, Trigger
+    from drivectl.controllers.runtime.servo import trace_header
+    from drivectl.tracefile.format import Trace
+
+    rt = loop.axes["x"]
+    cap = Capture("x", CHANNELS, Trigger("now"), int(round(pre_s / loop.dt)), 0, loop.dt,
+                  trace_header(rt.ch.axis, loop.dt, None, None, paced=True))
+    loop.submit(lambda: rt.captures.append(cap))
+    cap.wait(30.0)
+    path = cap.write(tmp_path / f"{name}.csv", plot=False)[0]
+    return Trace.read(path).time, cap
+
+
+def test_a_capture_across_a_stall_s_stop_reads_back(tmp_path):
+    """A stall past the deadline stops the axis from outside a cycle; the stop's own samples and the cycles
+    after it go on in time (was: the cycle after the stop recorded the stop's last number again, a time
+    that did not increase, and drivectl refused its own capture)."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall, ring_s=1.0)
+    try:
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 100, 30.0)
+        stall["s"] = 0.02  # past x's 17 ms: the drive still answers, the stop's cycles have samples
+        assert loop.run_until(lambda: loop.faults, 30.0)
+        assert loop.faults[0].kind == "servo loop stalled"
+        at = loop.slots
+        assert loop.run_until(lambda: loop.slots > at + 100, 30.0)
+        t, _ = _capture_now(loop, 0.5, tmp_path, "stall")
+        assert (np.diff(t) > 0).all() and len(t) > 100
     finally:
         loop.close()
         m.close()

@@ -294,3 +294,22 @@ def test_a_sigkilled_inline_writer_leaves_every_row_of_an_idle_loop(tmp_path):
     tr = Trace.read(partial)
     assert len(tr) == 3000 and tr.meta["trace_complete"] == "false"
     np.testing.assert_allclose(tr.pos, 1e-6 * np.arange(3000), atol=1e-12)
+
+
+def _timed(tmp_path, t, dt="0.001"):
+    body = "".join(f"{x!r},0,0,0\n" for x in t)
+    p = tmp_path / "gaps.csv"
+    p.write_text(f"# drivectl trace v1\n# axis: x\n# effort_unit: N\n# dt_s: {dt}\ntime_s,ref_m,pos_m,effort\n{body}")
+    return p
+
+
+def test_skipped_slots_read_back_as_gaps_and_a_dt_wrong_by_a_whole_factor_is_still_refused(tmp_path):
+    """A slot the wall-clock loop skipped has no row: its time is a gap of whole dt_s (most of a short
+    capture taken just after enable may be gaps); a file that steps 2 ms everywhere but says 1 ms is wrong."""
+    slots = [0, 1, 5, 6, 9, 17, 18, 30]                     # 5 of 7 steps are gaps
+    t = Trace.read(_timed(tmp_path, [s * 0.001 for s in slots])).columns["time_s"]
+    assert np.allclose(np.diff(t) / 0.001, np.diff(slots))
+    with pytest.raises(TraceError, match="dt_s"):
+        Trace.read(_timed(tmp_path, [s * 0.002 for s in range(20)]))
+    with pytest.raises(TraceError, match="dt_s"):
+        Trace.read(_timed(tmp_path, [s * 0.0015 for s in range(20)]))

@@ -82,19 +82,24 @@ class Trigger:
 
 
 class Ring:
-    """The last ``size`` samples of every channel, and the loop cycle each was taken at."""
+    """The last ``size`` samples of every channel, and the loop slot each stands for.
+
+    A slot is a cycle period of the loop's clock (ServoLoop.slot): on the wall clock a late wake-up skips
+    slots, so consecutive samples may be more than one slot apart, and a capture's time, taken from the
+    slots, is strictly increasing with the skipped slots as a gap (docs/trace-format.md), never the
+    count of cycles run (which lost the skipped time and, after a stop, repeated a number)."""
 
     def __init__(self, size: int):
         if size < 2:
             raise ValueError(f"capture ring: size must be >= 2, got {size}")
         self.size = size
         self.data = np.full((len(CHANNELS), size), np.nan)
-        self.cycle = np.zeros(size, dtype=np.int64)
+        self.slot = np.zeros(size, dtype=np.int64)
         self.rows = [self.data[j] for j in range(len(CHANNELS))]
         self.next = 0  # index the next sample goes to
         self.count = 0  # samples pushed, in all
 
-    def push(self, cycle: int, ref: float, pos: float, u: float, vel: float, torque: float, sw: int) -> None:
+    def push(self, slot: int, ref: float, pos: float, u: float, vel: float, torque: float, sw: int) -> None:
         """One cycle's sample (the per-cycle path: element writes only)."""
         i = self.next
         r = self.rows
@@ -105,7 +110,7 @@ class Ring:
         r[4][i] = vel
         r[5][i] = torque
         r[6][i] = sw
-        self.cycle[i] = cycle
+        self.slot[i] = slot
         self.next = i + 1 if i + 1 < self.size else 0
         self.count += 1
 
@@ -113,10 +118,10 @@ class Ring:
         return self.rows[channel][self.next - 1]
 
     def window(self, samples: int) -> tuple[np.ndarray, np.ndarray]:
-        """A copy of the last ``samples`` samples (fewer if fewer were pushed), oldest first."""
+        """A copy of the last ``samples`` samples (fewer if fewer were pushed), oldest first, and their slots."""
         n = min(samples, self.count, self.size)
         idx = (np.arange(self.next - n, self.next)) % self.size
-        return self.data[:, idx].copy(), self.cycle[idx].copy()
+        return self.data[:, idx].copy(), self.slot[idx].copy()
 
 
 class Capture:
@@ -132,11 +137,11 @@ class Capture:
         self.dt = dt
         self.meta = meta
         self.state = "armed"  # armed -> triggered -> done (or cancelled)
-        self.trigger_cycle: int | None = None
+        self.trigger_slot: int | None = None
         self._prev: float | None = None
         self._done = threading.Event()
         self._data: np.ndarray | None = None
-        self._cycles: np.ndarray | None = None
+        self._slots: np.ndarray | None = None
         self.trace: Trace | None = None
         self.detail = ""
         #: how waiting lets time pass (the machine's run_until: lockstep runs cycles); None: an Event wait
@@ -149,8 +154,8 @@ class Capture:
         return self._done.is_set()
 
     # -- called by the loop, in the cycle ------------------------------------------------------------
-    def on_cycle(self, ring: Ring, cycle: int, move_started: bool) -> bool:
-        """After this cycle's sample is in the ring; True when the capture completed now."""
+    def on_cycle(self, ring: Ring, slot: int, move_started: bool) -> bool:
+        """After this cycle's sample (at ``slot``) is in the ring; True when the capture completed now."""
         if self.state == "armed":
             t = self.trigger
             kind = t.kind
@@ -168,25 +173,26 @@ class Capture:
             if not hit:
                 return False
             self.state = "triggered"
-            self.trigger_cycle = cycle
+            self.trigger_slot = slot
         elif self.state != "triggered":
             return False
-        if cycle < self.trigger_cycle + self.post:  # by cycle: after a fault the stop's cycles count too
+        if slot < self.trigger_slot + self.post:  # by slot (time): after a fault the stop's cycles count too
             return False
-        self.complete(ring, cycle)
+        self.complete(ring, slot)
         return True
 
-    def fire(self, cycle: int, detail: str) -> None:
-        """Triggered from outside (a fault) at ``cycle``: the post-trigger samples follow in the cycles to come."""
-        self.state, self.trigger_cycle, self.detail = "triggered", cycle, detail
+    def fire(self, slot: int, detail: str) -> None:
+        """Triggered from outside (a fault) at ``slot``: the post-trigger samples follow in the cycles to come."""
+        self.state, self.trigger_slot, self.detail = "triggered", slot, detail
 
-    def complete(self, ring: Ring, cycle: int, detail: str = "") -> None:
-        """Copy the window out of the ring (pre + 1 + post samples, ending at ``cycle``)."""
-        if self.trigger_cycle is None:
-            self.trigger_cycle = cycle
-        data, cycles = ring.window(self.pre + 1 + self.post)
-        keep = cycles >= self.trigger_cycle - self.pre  # by cycle: a fault's detecting cycle may have no sample
-        self._data, self._cycles = data[:, keep], cycles[keep]
+    def complete(self, ring: Ring, slot: int, detail: str = "") -> None:
+        """Copy the window out of the ring: the samples of the slots ``pre`` before the trigger to ``slot``
+        (pre + 1 + post of them, fewer where a late wake-up skipped slots)."""
+        if self.trigger_slot is None:
+            self.trigger_slot = slot
+        data, slots = ring.window(self.pre + 1 + self.post)
+        keep = slots >= self.trigger_slot - self.pre  # by slot: time (a fault's detecting cycle may have no sample)
+        self._data, self._slots = data[:, keep], slots[keep]
         self.detail = detail or self.detail
         self.state = "done"
         self._done.set()
@@ -211,9 +217,9 @@ class Capture:
         if self.state == "cancelled":
             raise CaptureError(f"capture on axis {self.axis}: {self.detail}")
         if self.trace is None:
-            assert self._data is not None and self._cycles is not None
-            data, cycles = self._data, self._cycles
-            t = (cycles - self.trigger_cycle) * self.dt
+            assert self._data is not None and self._slots is not None
+            data, slots = self._data, self._slots
+            t = (slots - self.trigger_slot) * self.dt  # skipped slots: a gap in time, as in a run's trace
             cols = {"time_s": t, "ref_m": data[0], "pos_m": data[1], "effort": data[3]}
             for name in self.channels:
                 cols.setdefault(COLUMNS[name], data[CHANNELS.index(name)])

@@ -172,6 +172,7 @@ class ServoLoop:
         self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
         self.slot = 0  # the slot the next cycle runs in, either clock (a late wake-up skips some): the dead man's count
         self.skipped = 0  # slots skipped because the loop was that far behind
+        self._stamp = -1  # the slot of the last samples pushed into the rings (a stop's cycles follow it)
         self.gc_runs = 0
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
@@ -297,12 +298,13 @@ class ServoLoop:
             if self._elapsed > 1:  # woke late: the axes' next samples belong to the slot this cycle runs in
                 for rt in self._rts:
                     rt.ch.axis.skip(self._elapsed - 1)
+            s = self._stamp = self.slot  # the rings record the slot: a capture's time (capture.Ring)
             try:
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
-                        self._servo(rt, k)
+                        self._servo(rt, s)
                     else:
-                        self._idle(rt, k)
+                        self._idle(rt, s)
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
             except AxisError as exc:  # a write that failed (bus error): a fault like any other
@@ -318,8 +320,8 @@ class ServoLoop:
         text = str(exc)
         return next((rt.name for rt in self._rts if text.startswith(f"axis {rt.name}:")), self._rts[0].name)
 
-    def _servo(self, rt: AxisRuntime, k: int) -> None:
-        """One cycle of an enabled axis: sample -> reference -> control -> record -> limits -> write."""
+    def _servo(self, rt: AxisRuntime, s: int) -> None:
+        """One cycle of an enabled axis (slot ``s``): sample -> reference -> control -> record -> limits -> write."""
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
@@ -345,7 +347,7 @@ class ServoLoop:
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u
         rt.following_error = ref.position - pos
         ax = ch.axis
-        rt.ring.push(k, ref.position, pos, u, fb.velocity, ax.torque_actual, ax.statusword)
+        rt.ring.push(s, ref.position, pos, u, fb.velocity, ax.torque_actual, ax.statusword)
         if run is not None and run.k < run.n:
             i = run.k
             r = run.rows
@@ -356,14 +358,14 @@ class ServoLoop:
                 run.append(i * self.dt, ref.position, pos, u, fb.velocity)
             run.k = i + 1
         if rt.captures:
-            self._captures(rt, k)
+            self._captures(rt, s)
         rt.move_started = False
         check_and_write(ch, rt.servo_k, self.dt, pos, ref.position, u)
         if rt.handle is not None:
             self._progress(rt)
 
-    def _idle(self, rt: AxisRuntime, k: int) -> None:
-        """One cycle of an axis that is not servoing: sample, zero effort; take it up once enabled."""
+    def _idle(self, rt: AxisRuntime, s: int) -> None:
+        """One cycle of an axis that is not servoing (slot ``s``): sample, zero effort; take it up once enabled."""
         ax = rt.ch.axis
         try:
             fb = ax.read()
@@ -381,9 +383,9 @@ class ServoLoop:
         ax.write(0.0)
         pos = fb.position - rt.offset
         rt.position, rt.velocity, rt.reference, rt.effort, rt.following_error = pos, fb.velocity, pos, 0.0, 0.0
-        rt.ring.push(k, pos, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
+        rt.ring.push(s, pos, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
         if rt.captures:
-            self._captures(rt, k)
+            self._captures(rt, s)
         if rt.state is AxisState.ENABLING:
             power = ax.power
             if power is PowerState.OPERATION_ENABLED:
@@ -445,9 +447,9 @@ class ServoLoop:
         if then is not None:
             then()
 
-    def _captures(self, rt: AxisRuntime, k: int) -> None:
+    def _captures(self, rt: AxisRuntime, s: int) -> None:
         started = rt.move_started
-        done = [cap for cap in rt.captures if cap.on_cycle(rt.ring, k, started)]
+        done = [cap for cap in rt.captures if cap.on_cycle(rt.ring, s, started)]
         for cap in done:
             rt.captures.remove(cap)
             if cap.trigger.kind == "fault":
@@ -462,7 +464,7 @@ class ServoLoop:
         for rt in self._rts:  # the window ends at the detection: taken before the stop's own cycles
             if not rt.ring.count:
                 continue
-            last = int(rt.ring.cycle[rt.ring.next - 1])  # the last sample before the detection
+            last = int(rt.ring.slot[rt.ring.next - 1])  # the last sample before the detection
             armed = [c for c in rt.captures if c.trigger.kind == "fault"]
             if not armed and self.fault_dir is not None:  # nobody asked: the whole ring goes to disk all the same
                 head = trace_header(rt.ch.axis, self.dt, None, self.meta.get(rt.name), paced=self.clock == "wall")
@@ -497,22 +499,26 @@ class ServoLoop:
         fault capture's post-trigger samples show the stop itself."""
         self.cycle += 1
         self.slot += 1
-        k = self.cycle
+        # the slot after the last samples pushed: in a cycle (a fault found there) the one the cycle's count
+        # goes on from; outside one (a stall caught before the cycle) the next cycle's, which then starts
+        # after the stop's (the cycle count was recorded before: the cycle after such a stop recorded the
+        # stop's last number again, a capture's time did not increase and the reader refused the file)
+        s = self._stamp = self._stamp + 1
         for rt in self._rts:
             fb = samples.get(rt.name)
             if fb is None:
                 continue
             ax = rt.ch.axis
             pos = fb.position - rt.offset
-            rt.ring.push(k, rt.reference, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
+            rt.ring.push(s, rt.reference, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
             if rt.captures:
-                self._captures(rt, k)
+                self._captures(rt, s)
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
             return
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        path = self.fault_dir / f"{cap.axis}-fault-{stamp}-c{cap.trigger_cycle}.csv"
+        path = self.fault_dir / f"{cap.axis}-fault-{stamp}-s{cap.trigger_slot}.csv"
         self._pending_writes.append((path, cap))
         if self._writer is None or not self._writer.is_alive():
             # files are written off the loop's thread: the cycle goes on while they are

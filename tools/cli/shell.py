@@ -393,9 +393,11 @@ class Shell(cmd.Cmd):
     def do_scan(self, arg: str) -> bool:
         for name, ax in self.m.axes.items():
             hw = self.m.hardware.axes[name]
-            ident, node = hw.identity, hw.node_id
-            who = (f"node {node}, vendor 0x{ident.vendor_id:08X} product 0x{ident.product_code:08X}"
-                   if ident is not None and node is not None else "no bus (SimAxis)")
+            node, answered = hw.node_id, getattr(hw, "identity_answered", None)
+            # what the drive answered at boot (the expectation may leave fields out: identity = "vendor")
+            fields = zip(("vendor", "product", "revision"), answered or (), strict=False)
+            said = ", ".join(f"{n} 0x{v:08X}" for n, v in fields if v is not None) or "0x1018 not read"
+            who = f"node {node}, {said}" if node is not None else "no bus (SimAxis)"
             self.say(f"{name}: {who}, {ax.power.value}")
         return False
 

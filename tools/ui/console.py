@@ -237,7 +237,7 @@ class Console:
             self._end_jog(ax.name, "replaced")
             held = None
         handle = ax.jog(v)  # same v as the jog under way: a renewal (session.py)
-        cycle = self.m.loop.cycle
+        cycle = self.m.loop.slot  # the ring records slots (capture.Ring): the standstill is read there
         if held is None or held.handle is not handle:
             self.jogs[ax.name] = JogHold(client, v, handle, cycle)
             return f"{ax.name}: jog {v * 1e3:+g} mm/s (held)"

@@ -27,7 +27,7 @@ def read_since(ring: Any, last_cycle: int, most: int) -> tuple[np.ndarray, np.nd
     if n <= 0:
         return np.empty((len(CHANNELS), 0)), np.empty(0, dtype=np.int64)
     idx = np.arange(nxt - 1 - n, nxt - 1) % size
-    data, cycles = ring.data[:, idx].copy(), ring.cycle[idx].copy()
+    data, cycles = ring.data[:, idx].copy(), ring.slot[idx].copy()
     keep = cycles > last_cycle
     if keep.any():
         first = int(keep.argmax())

@@ -123,6 +123,9 @@ clipped_fault = 0.5
 extrapolated_warn = 0.005       # cycles run on an extrapolated position (TPDO lost or malformed)
 extrapolated_fault = 0.05
 fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines in the first second, stop a run
+
+# [health]
+# store = "health"              # drivectl health's store (docs/health.md); default: the user's data folder
 """
 
 
@@ -262,6 +265,8 @@ class MachineConfig:
     axes: dict[str, AxisConfig]
     bus: BusConfig = field(default_factory=BusConfig)
     checks: RunChecks = field(default_factory=RunChecks)  # [checks]: when a completed run warns or faults
+    #: [health] store: the health store's folder (drivectl health; relative to the file's folder)
+    health_store: str | None = None
 
     def axis(self, name: str) -> AxisConfig:
         if name not in self.axes:
@@ -308,10 +313,11 @@ def _string(src: str, key: str, value: Any) -> str:
 
 
 def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
-    unknown = set(data) - {"cycle_s", "axes", "bus", "checks"}
+    unknown = set(data) - {"cycle_s", "axes", "bus", "checks", "health"}
     if unknown:
-        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks)")
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks, health)")
     checks = _checks(data.get("checks", {}), src)
+    health_store = _health(data.get("health", {}), src)
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
@@ -418,7 +424,22 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store)
+
+
+def _health(raw: Any, src: str) -> str | None:
+    """[health] store = DIR: the health store (drivectl health), a path relative to the file's folder."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{src}: health: expected a table")
+    extra = set(raw) - {"store"}
+    if extra:
+        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store)")
+    if "store" not in raw:
+        return None
+    store = Path(_string(src, "health.store", raw["store"])).expanduser()
+    if not store.is_absolute() and not src.startswith("<"):
+        store = Path(src).parent / store
+    return str(store)
 
 
 def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:

@@ -69,6 +69,10 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     for f in dataclasses.fields(cfg.checks):
         checks.add(f.name, getattr(cfg.checks, f.name))
     doc.add("checks", checks)
+    if cfg.health_store:  # [health]: drivectl health's store (docs/health.md)
+        health = tomlkit.table()
+        health.add("store", cfg.health_store)
+        doc.add("health", health)
     axes = tomlkit.table(is_super_table=True)
     for name, ac in cfg.axes.items():
         t = tomlkit.table()

@@ -63,6 +63,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("emulate", "drivectl.tools.cli.emulate:add_emulate_parser", "drivectl.tools.cli.emulate:cmd_emulate",
             True),
     Command("explain", "drivectl.tools.explain.core:add_explain_parser", "drivectl.tools.explain.core:cmd_explain"),
+    Command("health", "drivectl.tools.health.command:add_health_parser",
+            "drivectl.tools.health.command:cmd_health"),
     Command("conformance", "drivectl.tools.conformance.suite:add_conformance_parser",
             "drivectl.tools.conformance.suite:cmd_conformance"),
     Command("shell", "drivectl.tools.cli.shell:add_shell_parser", "drivectl.tools.cli.shell:cmd_shell"),

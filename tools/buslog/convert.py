@@ -37,8 +37,17 @@ class BusLogError(InputError):
 
 
 def is_bus_log(path: str | Path) -> bool:
-    """Whether ``path`` is named as a CAN log python-can reads (by its suffix, as can.LogReader chooses)."""
-    return Path(path).suffix.lower() in LOG_SUFFIXES
+    """Whether ``path`` is named as a CAN log python-can reads (by its suffix, as can.LogReader chooses). A .csv
+    is both a python-can log and a drivectl trace: one that starts as a trace (``# drivectl trace``) is not a log."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        try:
+            with open(path, "rb") as f:
+                return not f.read(64).lstrip(b"\xef\xbb\xbf").startswith(b"# drivectl trace")
+        except OSError:
+            return True  # unreadable: the log reader says so in one line
+    return suffix in LOG_SUFFIXES
 
 
 def _sha256(path: Path) -> str:

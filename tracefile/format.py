@@ -22,6 +22,7 @@ refuses what it cannot read right (duplicate column names, time not increasing o
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
 import os
@@ -354,6 +355,15 @@ def _garbled(source: str, names: list[str], rows: list[str], exc: ValueError, of
                                   f"data row {r}")
     reason = str(exc).splitlines()[0].split("; use `usecols`")[0]  # numpy's hint is not for our users
     return TraceError(f"{source}: garbled data: {reason}")
+
+
+def file_sha256(path: str | Path) -> str:
+    """The sha256 of a file's bytes, read in blocks (a trace's or a log's identity in a store)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -10,7 +10,6 @@ of them is a row flagged ``lost`` (its missing values NaN, never interpolated).
 
 from __future__ import annotations
 
-import hashlib
 import math
 import struct
 from pathlib import Path
@@ -26,6 +25,7 @@ from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.pdo_plan import plan as plan_pdos
 from drivectl.driver.units import EffortScale, Encoder
 from drivectl.errors import InputError
+from drivectl.tracefile.format import file_sha256
 
 #: the suffixes can.LogReader reads (.mf4 where python-can's asammdf extra is installed)
 LOG_SUFFIXES = (".asc", ".blf", ".log", ".trc", ".csv", ".mf4")
@@ -50,12 +50,16 @@ def is_bus_log(path: str | Path) -> bool:
     return suffix in LOG_SUFFIXES
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
+def check_log(log: Path) -> Path:
+    """``log`` as a Path, or :class:`BusLogError` in one line when it is not a log python-can reads or is not
+    there (decode and trace --from-log refuse the same way)."""
+    log = Path(log)
+    if not is_bus_log(log):
+        raise BusLogError(f"{log}: not a CAN log python-can reads (suffix {log.suffix or 'none'}; expected one of "
+                          f"{', '.join(LOG_SUFFIXES)})")
+    if not log.is_file():
+        raise BusLogError(f"{log}: no such log file")
+    return log
 
 
 def _mapping(cfg: Any) -> str:
@@ -79,12 +83,7 @@ def log_to_trace(log: Path, *, axis: str, out_dir: Path, node: int | None = None
     from drivectl.machine.config import MachineConfig, load_config
     from drivectl.tracefile.stream import TraceWriter
 
-    log = Path(log)
-    if not is_bus_log(log):
-        raise BusLogError(f"{log}: not a CAN log python-can reads (suffix {log.suffix or 'none'}; expected one of "
-                          f"{', '.join(LOG_SUFFIXES)})")
-    if not log.is_file():
-        raise BusLogError(f"{log}: no such log file")
+    log = check_log(log)
     cfg = config if isinstance(config, MachineConfig) else load_config(config)
     ac = cfg.axis(axis)
     node_id = ac.node_id if node is None else node
@@ -191,7 +190,7 @@ def log_to_trace(log: Path, *, axis: str, out_dir: Path, node: int | None = None
     columns += [name for name, _ in extra] + ["frame_time_s", "lost"]
     meta = {
         "axis": axis, "effort_unit": _effort_unit(cfg, axis), "dt_s": dt, "dt_source": dt_source,
-        "ref": "none", "source": "bus log", "bus_log": str(log), "bus_log_sha256": _sha256(log),
+        "ref": "none", "source": "bus log", "bus_log": str(log), "bus_log_sha256": file_sha256(log),
         "node": node_id, "mapping": mapping, "mapping_source": f"{mapping} mapping planned on {eds_path} (not read "
         "from the log's SDO writes)", "encoder_m_per_count": enc.resolution, "rated_effort": scale.rated,
         "config": cfg.source,

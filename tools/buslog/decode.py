@@ -30,7 +30,7 @@ from drivectl.driver.cia301 import (
 )
 from drivectl.driver.pdo import PdoLayout
 from drivectl.driver.pdo_plan import plan as plan_pdos
-from drivectl.tools.buslog.convert import LOG_SUFFIXES, BusLogError, is_bus_log
+from drivectl.tools.buslog.convert import BusLogError, check_log
 
 
 def _name(od: canopen.ObjectDictionary, index: int, sub: int) -> str:
@@ -60,12 +60,7 @@ def _state(code: int) -> str:
 
 def decode_lines(log: Path, *, node: int, eds: str, mapping: str) -> Iterator[str]:
     """The events of ``log`` for ``node`` as lines (see the module docstring)."""
-    log = Path(log)
-    if not is_bus_log(log):
-        raise BusLogError(f"{log}: not a CAN log python-can reads (suffix {log.suffix or 'none'}; expected one of "
-                          f"{', '.join(LOG_SUFFIXES)})")
-    if not log.is_file():
-        raise BusLogError(f"{log}: no such log file")
+    log = check_log(log)
     try:
         od = canopen.import_od(eds, node)
     except Exception as exc:  # canopen raises many types for a bad file

@@ -13,11 +13,9 @@ the next ingest of that trace writes again under the same name).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
-import secrets
 import signal
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -29,7 +27,7 @@ from typing import Any
 
 from drivectl.errors import InputError
 from drivectl.tools.health.deps import need
-from drivectl.tracefile.format import Trace, TraceError
+from drivectl.tracefile.format import Trace, TraceError, atomic_write_bytes, file_sha256
 from drivectl.tracefile.stream import clean_stale, safe_name
 
 CATALOG = "catalog.duckdb"
@@ -91,12 +89,7 @@ class Outcome:
     sha256: str = ""
 
 
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
+sha256_of = file_sha256
 
 
 def started(path: Path, meta: dict[str, str]) -> tuple[datetime, str]:
@@ -241,21 +234,9 @@ def _write_parquet(path: Path, trace: Trace, sha: str) -> None:
     table = pa.table({k: pa.array(v) for k, v in trace.columns.items()})
     table = table.replace_schema_metadata({"drivectl.trace_meta": json.dumps(trace.meta),
                                            "drivectl.sha256": sha})
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
-    try:
-        pq.write_table(table, tmp, compression="zstd")
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    buf = pa.BufferOutputStream()  # one run is small: serialised in memory, then the project's atomic write
+    pq.write_table(table, buf, compression="zstd")
+    atomic_write_bytes(path, buf.getvalue().to_pybytes())
 
 
 @contextmanager

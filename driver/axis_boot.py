@@ -123,6 +123,8 @@ class AxisBoot:
         self.lost_cycles = 0
         self._rebooted = False
         self._consumed = self.clock.cycle
+        syncs = self.clock.syncs  # no answer is owed from before this connection (CanopenAxis.on_tpdo)
+        self._answered[:] = self._written_off[:] = [syncs] * len(self._answered)
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
         self._connected = True
 

@@ -260,6 +260,11 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self._tpdo_cob = [p.cob_id for p in plan.tx]
         self._fresh = [False] * len(self._tpdo)
         self._none_fresh = tuple(self._fresh)
+        # across processes, per TPDO: the SYNC (SyncClock.syncs) its last frame answered, the SYNC up to which the
+        # loop wrote answers off as lost, the SYNC at which a frame was taken for an earlier SYNC's (on_tpdo)
+        self._answered = [0] * len(self._tpdo)
+        self._written_off = [0] * len(self._tpdo)
+        self._owed_at = [-1] * len(self._tpdo)
         self._raw = [tuple(0 for _ in layout.entries) for layout in self._tpdo]
         at = {e: (i, j) for i, p in enumerate(plan.tx) for j, e in enumerate(p.entries)}
         self._at_sw = at[(cia402.STATUSWORD, 0)]
@@ -280,10 +285,27 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         # in lockstep the frames arrive on the reading thread, before read() looks: no event to wake it
         arrived = None if self.lockstep else self._arrived
 
+        answered, written_off, owed_at = self._answered, self._written_off, self._owed_at
+
         def on_tpdo(can_id: int, data: bytes, timestamp: float) -> None:
             if len(data) != size:  # not the mapping's length: unusable, the cycle is bridged as lost
                 self.frame_guard.reject(can_id, f"{len(data)} data bytes, the mapping has {size}", "tpdo-length")
                 return
+            if arrived is not None:
+                # across processes a drive answers its SYNCs in order, and an answer may come after the master's
+                # next SYNC. Right after a late wake-up (clock.late_sync) the answers of the SYNCs since this TPDO's
+                # last one are still owed: this frame is the oldest of them, not this cycle's sample (taken as it
+                # was, the loop ran a cycle behind on a position slots old). Otherwise a missing answer was lost.
+                s = clock.bus_syncs()
+                a = answered[i]
+                if a < written_off[i]:
+                    a = written_off[i]
+                if a < s - 1 and clock.late_sync == s:
+                    answered[i] = a + 1
+                    owed_at[i] = s
+                    self.late_total += 1
+                    return
+                answered[i] = s
             if self._consumed == clock.cycle:
                 self.late_total += 1  # for a cycle already used: too late, dropped
                 return
@@ -391,6 +413,13 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                     self._arrived.wait(left)
             else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
                 wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
+            syncs = clock.syncs
+            for n, at in enumerate(self._owed_at):
+                if at == syncs and not self._fresh[n]:
+                    # a frame came that was taken for an earlier SYNC's, and none after it: that one may as well
+                    # have been this SYNC's, the earlier lost. The count starts again from here (the cycle is
+                    # bridged), so one lost frame never makes every later answer look owed
+                    self._written_off[n] = syncs
         self._consumed = cycle
         if self._foreign is not None and not self._foreign_seen:
             self._foreign_seen = True  # raised once; the stop that follows must still cycle
@@ -433,7 +462,8 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
                             f"(limit {self._lost_limit})", FaultKind.TPDO_TIMEOUT)
         last = self._last
-        fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * self.dt, last.velocity)
+        t = (cycle - 1) * self.dt  # over every slot since the last sample: a late wake-up's skipped ones included
+        fb = self._last = Feedback(t, last.position + last.velocity * (t - last.time), last.velocity)
         return fb
 
     @property

@@ -28,6 +28,13 @@ class SyncClock:
         #: when the cycle's SYNC went (the pacer's clock; paced runs across processes): the TPDO waits end from it
         self.ticked_at = 0.0
         self._skipped = 0  # slots the loop skipped before this tick (it woke late): the cycle counts them
+        #: SYNCs on the bus since the clock began, up to this cycle's (a skipped slot sends none: ``cycle`` counts
+        #: slots, this counts frames); an axis counts its answers against it (CanopenAxis, docs/timing.md)
+        self.syncs = 0
+        #: ``syncs`` of the last SYNC that came after a late wake-up (slots skipped, or periodic SYNCs the loop
+        #: did not wait for): only across one may an answer to an earlier SYNC still be on its way
+        self.late_sync = -1
+        self._periodic_syncs = 0  # ``syncs`` when the periodic transmit started
 
     def skip(self, slots: int) -> None:
         """The next tick's SYNC is ``slots`` slots after the last one plus one: its cycle counts them, so what the
@@ -38,6 +45,9 @@ class SyncClock:
         prev, skipped, self._skipped = self.cycle, self._skipped, 0
         if self.periodic is None:
             self.cycle += 1 + skipped  # first: what answers this SYNC belongs to the new cycle
+            self.syncs += 1
+            if skipped:
+                self.late_sync = self.syncs
             self.network.send_message(self.cob_id, b"")
         else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
             seen = self.periodic.wait_beyond(self.cycle - self._periodic_base)
@@ -45,6 +55,9 @@ class SyncClock:
                 raise can.CanOperationError(f"no SYNC from the periodic transmit for "
                                             f"{SYNC_WAIT_PERIODS * self.periodic.dt * 1000:g} ms")
             self.cycle = self._periodic_base + seen
+            syncs, self.syncs = self.syncs, self._periodic_syncs + seen
+            if self.syncs - syncs > 1:
+                self.late_sync = self.syncs
         # from the first SYNC on: a drive starts watching at the first heartbeat (CiA 301), so a master
         # that died before its first one would leave the drive unwatched
         hb = self.heartbeat_cycles
@@ -63,10 +76,16 @@ class SyncClock:
         if periodic is None:
             self.sync_source, self.sync_note = "loop", why
             return
-        self._periodic_base = self.cycle
+        self._periodic_base, self._periodic_syncs = self.cycle, self.syncs
         self.network.subscribe(self.cob_id, periodic.on_sync)
         self.periodic = periodic
         self.sync_source, self.sync_note = "transport", ""
+
+    def bus_syncs(self) -> int:
+        """The SYNCs the bus has seen so far: this cycle's count, or, while the transport sends them, every one
+        the master's receiver has seen (a frame received after one of them answers it or an earlier one)."""
+        periodic = self.periodic
+        return self.syncs if periodic is None else self._periodic_syncs + periodic.seen
 
     def stop_periodic(self) -> None:
         """The loop sends the SYNC again (the paced run ended)."""

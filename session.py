@@ -642,7 +642,8 @@ def connect(
     fault_specs = [parse_fault(f) for f in faults] if faults else None
     if clock is None:
         clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
-    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall", effects=effects,
+    hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall",
+                      lockstep=clock == "lockstep", effects=effects,
                       noise=noise, seed=seed)
     try:
         channels = []

@@ -21,6 +21,7 @@ from drivectl.driver.cia301 import (
     NmtCommand,
     NmtState,
 )
+from drivectl.driver.emulator_clock import CLOCK_LOCKSTEP, CLOCK_SUB, EMULATOR_MARK, EMULATOR_OBJECT, MARK_SUB
 from drivectl.driver.pdo_plan import entry_bits
 from drivectl.driver.running_time import wait_running
 
@@ -80,6 +81,8 @@ class AxisBoot:
     # -- boot and configuration (before the cycle runs) ------------------------------------------
     def connect(self) -> None:
         """NMT reset and boot-up, identity check, CST and PDO configuration by SDO, NMT start."""
+        self._emulator = None  # asked again (is_emulator): another node may answer on this id now
+        self._lockstep_gone = False
         self._boot()
         # the first SDO after a boot-up: a boot-up still buffered in an adapter from the drive's power-on
         # can arrive after our reset command, while the drive is still booting (tens of ms, no SDO): more
@@ -97,6 +100,8 @@ class AxisBoot:
             sdo.MAX_RETRIES = retries
         if not self.lockstep:
             self._adapt_to_peer((time.perf_counter() - t0) / 2)
+        if self.lockstep_peer:  # before anything is configured or moves: only the emulator is driven in lockstep
+            self._lockstep_peer()
         self._configure()
         for cob, handler in zip(self._tpdo_cob, self._tpdo_handlers, strict=True):
             self.network.subscribe(cob, handler)
@@ -127,6 +132,32 @@ class AxisBoot:
         self._answered[:] = self._written_off[:] = [syncs] * len(self._answered)
         self.network.send_message(NMT_COB_ID, bytes([NmtCommand.START, self.node_id]))
         self._connected = True
+
+    def is_emulator(self) -> bool:
+        """Is this node drivectl's emulated drive? 0x5FFF:1 read (never written) once per connection: a real drive
+        aborts the read of an object it lacks, or answers something else (driver/emulator_clock.py)."""
+        if self._emulator is None:
+            try:
+                self._emulator = self.node.sdo.upload(EMULATOR_OBJECT, MARK_SUB) == EMULATOR_MARK.to_bytes(4, "little")
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError, can.CanError):
+                self._emulator = False
+        return self._emulator
+
+    def tell_clock(self, mode: int) -> None:
+        """Tell drivectl's emulated drive the master's clock (0x5FFF:2); nothing to a real drive (it has its own)."""
+        if not self.in_process and self.is_emulator():  # (in-process the lockstep network paces its drives)
+            self.node.sdo.download(EMULATOR_OBJECT, CLOCK_SUB, bytes([mode]))
+
+    def _lockstep_peer(self) -> None:
+        """Lockstep across processes: the master waits for every SYNC's TPDOs and the drive's time is the SYNC
+        count. Only drivectl's emulated drive can be driven so; a real drive runs on its own clock and is refused,
+        one line, before anything is configured."""
+        if not self.is_emulator():
+            raise AxisConfigError(
+                f"axis {self.name}: node {self.node_id}: clock lockstep: the node is not drivectl's emulated drive "
+                f"(0x{EMULATOR_OBJECT:04X}:{MARK_SUB} is not 0x{EMULATOR_MARK:08X}), and a real drive runs on its own "
+                "clock: run it on the wall clock (drivectl trace --paced, connect(clock=\"wall\"))")
+        self.tell_clock(CLOCK_LOCKSTEP)
 
     def _adapt_to_peer(self, rtt: float) -> None:
         """Timeouts from what this drive on this bus takes to answer (``rtt``: the slowest SDO round trip

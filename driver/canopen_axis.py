@@ -57,6 +57,7 @@ from drivectl.driver.cia301 import (
     NmtState,
 )
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.emulator_clock import CLOCK_OWN, CLOCK_WALL
 from drivectl.driver.enable_check import enable_blocker
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
@@ -89,6 +90,9 @@ _RX_KIND = {cia402.CONTROLWORD: _RX_CW, cia402.TARGET_TORQUE: _RX_TT}
 
 #: EMCY messages kept in canopen's consumer log (the newest; last_emcy is what the loop reads)
 EMCY_KEPT = 32
+#: lockstep across processes: how long a cycle waits for its TPDOs (s of this process's running time) before it is
+#: one error (a host 60 times slower than this one answers a SYNC in some 50 ms)
+LOCKSTEP_WAIT_S = 10.0
 
 
 class _Node(canopen.RemoteNode):
@@ -168,7 +172,14 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self.max_torque_permille = None if math.isinf(max_effort) else max(1, effort_scale.to_permille(max_effort))
         # the drive's RPDO deadline (0x1400:05): two cycles unless configured
         self.rpdo_timeout_ms = round(2 * dt * 1000) if rpdo_timeout_ms is None else rpdo_timeout_ms
-        self.lockstep = isinstance(network, LockstepNetwork)
+        self.lockstep = self.in_process = isinstance(network, LockstepNetwork)
+        #: lockstep across processes (set before connect(): open_machine(lockstep=True)): every SYNC's TPDOs are
+        #: waited for, up to ``lockstep_wait`` s of this process's running time, then one error (never bridged);
+        #: the emulated drive is told so (0x5FFF:2) and a real drive is refused at connect()
+        self.lockstep_peer = False
+        self.lockstep_wait = LOCKSTEP_WAIT_S
+        self._lockstep_gone = False  # its wait ran out once: the stop that follows bridges as usual
+        self._emulator: bool | None = None  # is the node drivectl's emulated drive (is_emulator)
         try:
             od = canopen.import_od(str(eds), node_id)
         except Exception as exc:  # canopen raises many types for a bad file
@@ -411,6 +422,14 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                 left = clock.ticked_at + self._tpdo_budget - self._wall()
                 if left > 0:
                     self._arrived.wait(left)
+            elif self.lockstep_peer and not self._lockstep_gone:  # lockstep across processes: every SYNC's TPDOs
+                # (the drive's time is the SYNC count: it does not miss us however long we wait)
+                if not wait_running(self._arrived, self.lockstep_wait) and not all(self._fresh):
+                    self._lockstep_gone = True
+                    self._consumed = cycle
+                    raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for SYNC {clock.syncs} within "
+                                    f"{self.lockstep_wait:g} s (clock lockstep across processes: the drive or its "
+                                    "link is gone)", FaultKind.TPDO_TIMEOUT)
             else:  # no deadline: the drive gets the wait in this process's running time (a stall is not its)
                 wait_running(self._arrived, self._unpaced_wait, wall_limit=self._unpaced_wall)
             syncs = clock.syncs
@@ -551,6 +570,13 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
         else:
             self.clock.stop_periodic()
+        if not self.in_process and not self.lockstep_peer:
+            # drivectl's emulated drive runs the cycles of a late SYNC's gap while the run is paced, and is
+            # SYNC-locked again after it (docs/timing.md); unanswered, the drive's own watchdogs still stop it
+            try:
+                self.tell_clock(CLOCK_OWN if wall is None else CLOCK_WALL)
+            except (canopen.SdoAbortedError, canopen.SdoCommunicationError, can.CanError):
+                pass
         self._paced = wall is not None
         self._wall = wall or _no_wall
         self._lost_limit, self._tpdo_budget = self.max_lost_cycles, self.tpdo_timeout

@@ -192,12 +192,17 @@ def open_machine(
     bus_log: str | None = None,
     faults: Sequence[FaultSpec] | None = None,
     paced: bool = False,
+    lockstep: bool = False,
 ) -> Machine:
     """The axes ``names`` of ``cfg``, each starting at ``start[name]`` (m); ``bus_log`` records every
     frame to a file (python-can Logger, format by suffix); ``faults`` arms fault injection (a spec
     without an axis goes to the first axis). On the virtual bus the drives and masters share the
     lockstep's own bus (driver/lockstep_bus.py); ``paced`` (a run on the wall clock) keeps python-can's
-    virtual bus instead."""
+    virtual bus instead. ``lockstep`` on a bus to another process: every SYNC's TPDOs are waited for and
+    drivectl's emulated drives step one cycle per SYNC whatever the wait (a node that is not one is refused,
+    one line; docs/timing.md); in-process and with ``sim`` runs are lockstep anyway."""
+    if paced and lockstep:
+        raise ValueError("open_machine: paced and lockstep are two clocks: one of them")
     if faults is not None and (sim or cfg.bus.interface != "virtual"):
         raise FaultSpecError("--fault: faults are injected into the emulated drives of the virtual bus (not with "
                              "--sim or another bus; across processes use drivectl emulate --fault)")
@@ -225,7 +230,7 @@ def open_machine(
             axes[name].enable_settle_s = ac.enable_settle_s
         return Machine(axes, specs, "sim (SimAxis, no bus)", deadlines=axis_deadlines(cfg, names, specs))
     if cfg.bus.interface != "virtual":
-        return _open_remote(cfg, names, specs, bus_log)
+        return _open_remote(cfg, names, specs, bus_log, lockstep)
     lockstep = Lockstep()
     channel = unique_virtual_channel(cfg.bus.channel)
     # the emulated drives step on the SYNCs they receive; paced, those come on the wall clock
@@ -282,7 +287,7 @@ def readable_eds(name: str, eds: str) -> str:
 
 
 def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequence[str],
-                     specs: dict[str, PlantSpec]) -> None:
+                     specs: dict[str, PlantSpec], lockstep: bool = False) -> None:
     """One CanopenAxis per axis on ``net``, sharing one SYNC clock; each booted and configured."""
     from drivectl.machine.bus_budget import resolve_mapping
 
@@ -300,6 +305,7 @@ def _connect_masters(machine: Machine, net: Any, cfg: MachineConfig, names: Sequ
                            rated_effort_source=ac.rated_effort_source,
                            sdo_init=ac.sdo_init, identity=ac.identity)
         axis.enable_settle_s = ac.enable_settle_s
+        axis.lockstep_peer = lockstep
         axis.connect()
         machine.axes[name] = axis
         machine._closers.append(axis.close)
@@ -321,18 +327,18 @@ def axis_deadlines(cfg: MachineConfig, names: Sequence[str], specs: dict[str, Pl
 
 
 def _open_remote(cfg: MachineConfig, names: Sequence[str], specs: dict[str, PlantSpec],
-                 bus_log: str | None) -> Machine:
+                 bus_log: str | None, lockstep: bool = False) -> Machine:
     """Masters on a bus that reaches drives in another process (slcan, socketcand, socketcan):
-    a notifier thread receives, each cycle waits for its TPDOs against a deadline."""
+    a notifier thread receives, each cycle waits for its TPDOs against a deadline (``lockstep``: for them)."""
     b = cfg.bus
     bus = open_bus(b.interface, b.channel, b.bitrate, **b.open_kwargs())
     net = threaded_network(bus)
-    machine = Machine({}, specs, f"{b.interface}:{b.channel}")
+    machine = Machine({}, specs, f"{b.interface}:{b.channel}" + (" (lockstep across processes)" if lockstep else ""))
     machine._closers.append(lambda: close_threaded(net))
     if bus_log:
         attach_bus_log(net, bus_log)  # sent and received frames, on one clock
     try:
-        _connect_masters(machine, net, cfg, names, specs)
+        _connect_masters(machine, net, cfg, names, specs, lockstep)
     except BaseException:
         machine.close()
         raise

@@ -5,9 +5,11 @@ node402.EmulatedDrive)."""
 from __future__ import annotations
 
 import canopen
+from canopen import objectdictionary as odt
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import HEARTBEAT_BASE, SDO_ABORT_VALUE_RANGE
+from drivectl.driver.emulator_clock import CLOCK_NAMES, CLOCK_OWN, CLOCK_SUB, EMULATOR_MARK, EMULATOR_OBJECT, MARK_SUB
 from drivectl.driver.enable_check import VOLTAGE_ENABLED
 from drivectl.driver.units import EffortScale
 from drivectl.plant_emulator.drive_constants import DIGITAL_INPUTS, FAULTED
@@ -15,6 +17,24 @@ from drivectl.plant_emulator.faults import SDO_ABORT_GENERAL
 
 #: the modes in which the emulated drive puts the setpoint on the plant
 TORQUE_MODES = (int(cia402.Mode.CYCLIC_SYNC_TORQUE), int(cia402.Mode.PROFILE_TORQUE))
+
+
+def add_emulator_object(od: canopen.ObjectDictionary) -> None:
+    """0x5FFF, the object by which a master tells drivectl's emulated drive its clock (driver/emulator_clock.py),
+    added to whatever EDS the drive impersonates (unless that EDS has an object there of its own)."""
+    if EMULATOR_OBJECT in od:
+        return
+    rec = odt.ODRecord("drivectl emulated drive", EMULATOR_OBJECT)
+    for sub, name, dtype, access, default, high in (
+            (0, "Highest sub-index supported", odt.UNSIGNED8, "const", CLOCK_SUB, None),
+            (MARK_SUB, "drivectl emulator", odt.UNSIGNED32, "ro", EMULATOR_MARK, None),
+            (CLOCK_SUB, "Master clock", odt.UNSIGNED8, "rw", CLOCK_OWN, max(CLOCK_NAMES))):
+        var = odt.ODVariable(name, EMULATOR_OBJECT, sub)
+        var.data_type, var.access_type, var.default, var.min, var.max = dtype, access, default, None, high
+        if high is not None:
+            var.min = 0
+        rec.add_member(var)
+    od.add_object(rec)
 
 
 class DriveObjects:
@@ -75,6 +95,8 @@ class DriveObjects:
             self._heartbeat_cycles = 0  # restart the count with the new period
         elif index == cia402.COB_ID_SYNC:
             self._set_sync_cob(value & 0x7FF)
+        elif index == EMULATOR_OBJECT and sub == CLOCK_SUB:
+            self._set_master_clock(value)
 
     def _mode_supported(self, mode: int) -> bool:
         if mode == 0:

@@ -48,6 +48,7 @@ from drivectl.driver.cia301 import (
     NmtCommand,
     NmtState,
 )
+from drivectl.driver.emulator_clock import CLOCK_OWN
 from drivectl.driver.units import DEFAULT_RESOLUTION_M, EffortScale, Encoder
 from drivectl.plant_emulator.drive import DriveModel
 from drivectl.plant_emulator.drive_clock import DriveClock
@@ -66,7 +67,7 @@ from drivectl.plant_emulator.drive_constants import (  # noqa: F401 - re-exporte
     SYNC_LENGTH_ERROR,
     SYNC_LOSS_MS,
 )
-from drivectl.plant_emulator.drive_objects import DriveObjects
+from drivectl.plant_emulator.drive_objects import DriveObjects, add_emulator_object
 from drivectl.plant_emulator.drive_pdos import DrivePdos
 from drivectl.plant_emulator.faults import FaultInjector
 from drivectl.plant_emulator.frames import FrameGuard
@@ -119,6 +120,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self.network = network
         self.node_id = node_id
         self.od = canopen.import_od(str(eds), node_id)
+        add_emulator_object(self.od)  # whatever EDS it impersonates, a master can tell it is drivectl's emulator
         self.node = canopen.LocalNode(node_id, self.od)
         self.frames = FrameGuard(node_id)
         network.add_node(self.node)
@@ -156,6 +158,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._last_serve = 0.0  # wall time (s) of the last serve(): a long absence is this process's own
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
+        self.master_clock = CLOCK_OWN  # what the master said its clock is (0x5FFF:2, driver/emulator_clock.py)
+        self._sync_wall: float | None = None  # the last SYNC's receive stamp (s), the master on the wall clock
         self._heartbeat_cycles = 0
         self._consumer: tuple[int, int] | None = None  # master node id, timeout ms (0x1016 sub 1)
         self._ms_since_master: float | None = None  # None until the first heartbeat of the master
@@ -244,6 +248,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._set_sync_cob(self._od_default(cia402.COB_ID_SYNC, absent=SYNC_COB_ID) & 0x7FF)
         self._errors.clear()
         if application:
+            if self.master_clock != CLOCK_OWN:  # 0x5FFF:2 back to its power-on value
+                self._set_master_clock(CLOCK_OWN)
             if cia402.RATED_TORQUE in self.od:
                 store.setdefault(cia402.RATED_TORQUE, {})[0] = struct.pack("<I", round(self._rated_effort * 1000))
             self.scale = EffortScale(self._rated_effort)

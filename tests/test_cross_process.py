@@ -20,6 +20,7 @@ from drivectl.machine.build import open_machine
 from drivectl.machine.config import load_config
 from drivectl.profiles.ptp import PointToPoint
 from drivectl.tools.explain.core import explain
+from drivectl.tracefile.format import Trace
 
 AXIS_X = """
 cycle_s = 0.001
@@ -65,7 +66,9 @@ def _config(tmp_path: Path, bus: str, profile: str = "short-move"):
 
 
 def _trace(cfg, sim: bool, profile):
-    with open_machine(cfg, ["x"], sim=sim) as m:
+    # lockstep across processes: the same trace however loaded the host (as fast as the drive answers, a master
+    # held up past the drive's SYNC-loss window saw it run on its own clock and stop: 0x8250, at load 12)
+    with open_machine(cfg, ["x"], sim=sim, lockstep=not sim) as m:
         ctrl = make_controller("asmc", cfg.cycle_s, {"law": 14}, plant=m.specs["x"])
         res = run(m.axes["x"], ctrl, profile, limits=cfg.axis("x").limits)
         assert res.ok, res.detail
@@ -285,3 +288,135 @@ def test_every_axis_waits_for_its_own_tpdos_across_processes(tmp_path):
     finally:
         emu.send_signal(signal.SIGTERM)
         emu.communicate(timeout=30)
+
+
+def _emulate_default(tmp_path, *flags: str):
+    """`drivectl emulate` of the embedded machine's x in another process: (process, config for a master on it)."""
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+
+    emu_cfg = tmp_path / "emu.toml"
+    emu_cfg.write_text(DEFAULT_CONFIG_TOML)
+    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(emu_cfg), "emulate", "--axis", "x",
+                             "--socketcand", *flags], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    line = proc.stdout.readline()
+    assert line.startswith("emulating"), line + proc.stderr.read()
+    port = int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
+    master = tmp_path / "master.toml"
+    master.write_text(DEFAULT_CONFIG_TOML.replace('interface = "virtual"', 'interface = "socketcand"', 1).replace(
+        'channel = "drivectl"', 'channel = "can0"\nhost = "127.0.0.1"\n' f"port = {port}", 1))
+    return proc, master
+
+
+def test_trace_clock_lockstep_across_processes_is_the_simulation_bit_for_bit(tmp_path):
+    """Issue 39 point 5: `drivectl trace --clock lockstep` against `drivectl emulate` in another process: the
+    master waits for every SYNC's TPDOs (never bridges), the emulated drive, told so (0x5FFF:2), steps one cycle
+    per SYNC however long the master takes: the trace is `trace --sim`'s, every column, bit for bit."""
+    from drivectl.tools.cli.main import main
+
+    emu, master = _emulate_default(tmp_path)
+    base = ["--config", str(master), "trace", "--axis", "x", "--duration", "1.0", "--no-plot", "--quiet"]
+    try:
+        assert main([*base, "--clock", "lockstep", "--out", str(tmp_path / "bus")]) == 0
+    finally:
+        emu.send_signal(signal.SIGTERM)
+        err = emu.communicate(timeout=30)[1]
+    assert main([*base, "--sim", "--out", str(tmp_path / "sim")]) == 0
+    files = [next((tmp_path / d).glob("x-*.csv")) for d in ("bus", "sim")]
+    bus, sim = (Trace.read(f) for f in files)
+    assert len(bus.pos) == len(sim.pos) == 1001
+    assert np.array_equal(bus.pos, sim.pos) and np.array_equal(bus.effort, sim.effort)
+    rows = [[line for line in f.read_text().splitlines() if not line.startswith("#")] for f in files]
+    assert rows[0][0] == "time_s,ref_m,pos_m,effort,vel_m_s" and rows[0] == rows[1]  # every column as written
+    assert bus.meta["tpdo_lost_cycles"] == "0" and "lockstep across processes" in bus.meta["bus"]
+    assert "emulator stopped after" in err
+
+
+def test_clock_lockstep_refuses_a_node_that_is_not_the_emulated_drive():
+    """A real drive is never driven in lockstep: a node that does not answer drivectl's emulator object (0x5FFF:1)
+    is refused at connect, one line, before anything is configured or moves."""
+    from drivectl.driver.axis import AxisConfigError
+    from drivectl.driver.emulator_clock import EMULATOR_OBJECT
+    from drivectl.machine.config import load_config as load
+
+    with open_machine(load(None), ["x"]) as m:
+        ax, drive = m.axes["x"], m.drives["x"]
+        del drive.od[EMULATOR_OBJECT]  # a drive that is not drivectl's emulator has no such object
+        ax.lockstep_peer = True
+        with pytest.raises(AxisConfigError) as exc:
+            ax.connect()
+        msg = str(exc.value)
+        assert "\n" not in msg and msg.startswith("axis x: node 1: clock lockstep: the node is not drivectl's emulated")
+        assert "--paced" in msg
+
+
+def test_clock_lockstep_a_drive_that_stops_answering_is_one_error_not_a_hang():
+    """Lockstep across processes waits for every SYNC's TPDOs, however long the drive takes, up to a generous
+    bound of this process's running time; past it, one error (a TPDO timeout), never a hang, and the stop after it
+    bridges as any run does."""
+    from drivectl.driver.axis import AxisError, FaultKind
+    from drivectl.machine.config import load_config as load
+
+    with open_machine(load(None), ["x"]) as m:
+        ax = m.axes["x"]
+        ax.read()
+        ax.lockstep, ax.lockstep_peer, ax.lockstep_wait = False, True, 0.05  # frames from elsewhere, waited for
+        ax._tpdo_handlers = [ax._tpdo_callback(i) for i in range(len(ax._tpdo_cob))]
+        for cob in ax._tpdo_cob:  # the drive's answers never reach the master
+            ax.network.subscribers[cob][:] = []
+        with pytest.raises(AxisError) as exc:
+            ax.read()
+        assert exc.value.kind is FaultKind.TPDO_TIMEOUT and "no TPDO for SYNC" in str(exc.value)
+        assert "within 0.05 s (clock lockstep across processes" in str(exc.value)
+        ax.read()  # the stop's cycles: bridged, no second wait
+        assert ax.lost_cycles == 1
+
+
+@pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "as-fast-as-it-answers"])
+def test_clock_lockstep_waits_out_a_drive_stopped_for_half_a_second(tmp_path, lockstep):
+    """The emulator's process stopped for 0.5 s mid-run (SIGSTOP, as a starved host or VM stops it): in lockstep
+    the master waits for that SYNC's TPDOs and the trace is still the simulation's bit for bit; without it the
+    master gives up on each SYNC's TPDOs after 150 ms and bridges the cycle (or faults past 3 in a row): the trace
+    is then not the simulation's."""
+    import threading
+
+    from drivectl.machine.build import axis_profile
+    from drivectl.machine.config import load_config as load
+
+    def stop_the_drive_at(axis, cycle: int, pid: int) -> None:  # the drive's process stopped once, at ``cycle``
+        write, k = axis.write, [0]
+
+        def counted(effort: float) -> None:
+            k[0] += 1
+            if k[0] == cycle:
+                os.kill(pid, signal.SIGSTOP)
+                threading.Timer(0.5, os.kill, (pid, signal.SIGCONT)).start()
+            write(effort)
+
+        axis.write = counted
+
+    emu, master = _emulate_default(tmp_path)
+    profile = axis_profile(load(None), "x")  # where the emulator puts x: its configured profile's start
+    traces = []
+    try:
+        for cfg, sim in ((load(master), False), (load(None), True)):
+            with open_machine(cfg, ["x"], sim=sim, lockstep=lockstep and not sim,
+                              start={"x": profile.start_position}) as m:
+                ac = cfg.axis("x")
+                law = make_controller(ac.controller, cfg.cycle_s, ac.controller_settings, plant=m.specs["x"], axis="x")
+                if not sim:
+                    stop_the_drive_at(m.axes["x"], 300, emu.pid)
+                traces.append(run(m.axes["x"], law, profile, limits=ac.limits, duration=0.6))
+    finally:
+        emu.send_signal(signal.SIGCONT)
+        emu.send_signal(signal.SIGTERM)
+        emu.communicate(timeout=30)
+    remote, local = traces
+    assert local.ok
+    if lockstep:
+        assert remote.ok, remote.detail
+        assert np.array_equal(remote.trace.pos, local.trace.pos) and np.array_equal(remote.trace.effort,
+                                                                                    local.trace.effort)
+    else:  # bridged (extrapolated) cycles, or a TPDO timeout: not the simulation's trace
+        assert int(remote.trace.meta["tpdo_lost_cycles"]) > 0 or "no TPDO for" in remote.detail
+        assert not np.array_equal(remote.trace.pos, local.trace.pos[:len(remote.trace.pos)])

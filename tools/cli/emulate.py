@@ -9,7 +9,9 @@ at them. Without kernel CAN the emulator is itself the adapter:
 * ``--interface socketcan --channel vcan0``: a kernel CAN interface, where the kernel has one.
 
 The plant advances one cycle per SYNC received (simulated time), so a run across processes gives
-the same trace as the lockstep virtual bus, bit for bit.
+the same trace as the lockstep virtual bus, bit for bit (``drivectl trace --clock lockstep`` tells the
+drives so: they never run on their own clock then); a master paced on the wall clock tells them to run
+the cycles of a late SYNC's gap first, as a real drive's plant moves on (docs/timing.md).
 
 ``--fault [AXIS/]KIND[:k=v,...]@TIME`` breaks a drive on cue (plant_emulator/faults.py) for the
 master at the other end to detect; ``master-dead`` makes the emulator stop hearing the master (as if

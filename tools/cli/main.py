@@ -137,7 +137,12 @@ def add_trace_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--eds", metavar="FILE", help="with --from-log: the drive's EDS (default: the axis's)")
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
-                   "are recorded in the trace")
+                   "are recorded in the trace (the same as --clock wall)")
+    t.add_argument("--clock", choices=("lockstep", "wall"),
+                   help="lockstep: across processes too, every SYNC's TPDOs are waited for and drivectl's emulated "
+                   "drive steps one cycle per SYNC, so the trace is --sim's bit for bit however slow the host (a "
+                   "real drive is refused: it runs on its own clock); wall: --paced. Default: lockstep in-process, "
+                   "as fast as the drive answers across processes")
     from drivectl.tools.cli.approach import add_approach_flags
 
     add_approach_flags(t)
@@ -244,6 +249,9 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
     from drivectl.tracefile.metrics import summarize
     from drivectl.tracefile.plot import plot_traces
 
+    if args.clock == "lockstep" and args.paced:
+        raise checks.ConfigError("--clock lockstep: not with --paced (that is --clock wall)")
+    args.paced = args.paced or args.clock == "wall"
     cfg = load_config(args.config)
     names = checks.parse_axes(args.axis)
     checks.check_number("--noise", args.noise, lo=0.0, unit="effort unit")
@@ -297,7 +305,7 @@ def _trace(args: argparse.Namespace, request: StopRequest) -> int:
                             faults=faults)
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
-                           bus_log=args.bus_log, faults=faults, paced=args.paced)
+                           bus_log=args.bus_log, faults=faults, paced=args.paced, lockstep=args.clock == "lockstep")
     channels = []
     try:
         for name in names:

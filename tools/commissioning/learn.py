@@ -522,7 +522,7 @@ def run_repeated(args: argparse.Namespace, request: Any, plan: RepeatPlan, *, cf
                                     on_repetition) for n in names}
     machine = open_machine(cfg, names, sim=args.sim, plant=args.plant, effects=effects, noise=args.noise,
                            seed=args.seed, start={n: p.start_position for n, p in profiles.items()},
-                           bus_log=args.bus_log)
+                           bus_log=args.bus_log, lockstep=getattr(args, "clock", None) == "lockstep")
     what = "learning" if args.learn else ("with the learned correction" if given else "plain")
     print(f"trace: axis {','.join(names)}, {reps} repetition(s) of {cycles} cycles of {dt * 1e3:g} ms with "
           f"{between * dt:.2f} s back to the start between them, on {machine.bus}, {what} (Ctrl-C stops safely)",

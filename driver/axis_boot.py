@@ -122,6 +122,7 @@ class AxisBoot:
         self._controlword = self.master.controlword(self.power)
         counts = self._sdo(cia402.POSITION_ACTUAL)
         self._last = Feedback((self.clock.cycle - 1) * self.dt, self.encoder.from_counts(counts), 0.0)
+        self._last_cycle = self.clock.cycle
         if self._at_vel is None:
             self._prev_counts = (counts, self.clock.cycle)
         self._cw_sent = None  # the drive's 0x6040 after a (re)boot is not what we last sent

@@ -220,6 +220,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         self.last_emcy: tuple[int, int] | None = None  # (error code, cycle)
         self._rebooted = False
         self._last = Feedback(0.0, 0.0, 0.0)
+        self._last_cycle = 1  # the cycle of the last sample (a bridged one extrapolates from it)
         self._cycle = self.clock.cycle
         self._consumed = self.clock.cycle  # the cycle whose TPDOs the last read() used
         self._controlword = 0
@@ -472,6 +473,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self.state_fresh, self.state_source = True, "TPDO"
             self._controlword = self.master.controlword(self.power)
             fb = self._last = Feedback((cycle - 1) * self.dt, enc.from_counts(counts), velocity)
+            self._last_cycle = cycle
             return fb
         # no (complete) sample: bridge the cycle by extrapolating the last one; too many in a row is a fault
         self.lost_cycles += 1
@@ -481,8 +483,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
                             f"(limit {self._lost_limit})", FaultKind.TPDO_TIMEOUT)
         last = self._last
-        t = (cycle - 1) * self.dt  # over every slot since the last sample: a late wake-up's skipped ones included
-        fb = self._last = Feedback(t, last.position + last.velocity * (t - last.time), last.velocity)
+        # over every slot since the last sample: a late wake-up's skipped ones included
+        since, self._last_cycle = (cycle - self._last_cycle) * self.dt, cycle
+        fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * since, last.velocity)
         return fb
 
     @property

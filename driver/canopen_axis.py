@@ -57,7 +57,6 @@ from drivectl.driver.cia301 import (
     NmtState,
 )
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
-from drivectl.driver.emulator_clock import CLOCK_OWN, CLOCK_WALL
 from drivectl.driver.enable_check import enable_blocker
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
@@ -573,13 +572,6 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
         else:
             self.clock.stop_periodic()
-        if not self.in_process and not self.lockstep_peer:
-            # drivectl's emulated drive runs the cycles of a late SYNC's gap while the run is paced, and is
-            # SYNC-locked again after it (docs/timing.md); unanswered, the drive's own watchdogs still stop it
-            try:
-                self.tell_clock(CLOCK_OWN if wall is None else CLOCK_WALL)
-            except (canopen.SdoAbortedError, canopen.SdoCommunicationError, can.CanError):
-                pass
         self._paced = wall is not None
         self._wall = wall or _no_wall
         self._lost_limit, self._tpdo_budget = self.max_lost_cycles, self.tpdo_timeout

@@ -1,5 +1,5 @@
 """How a master tells drivectl's emulated drive in another process which clock it runs on (docs/timing.md,
-"Across processes: whose clock").
+"The emulated drive's clock (0x5FFF)").
 
 A real drive runs on its own clock, whatever the master does. The emulated drive has none of its own: it steps
 its plant at the SYNCs it receives, so it must know what the time between two SYNCs is. One object, answered by
@@ -14,10 +14,11 @@ its plant at the SYNCs it receives, so it must know what the time between two SY
     window (the heartbeat consumer time, 300 ms) on its own clock;
   - ``CLOCK_LOCKSTEP`` (1): time is the SYNC count and nothing else: one cycle per SYNC however long the master
     takes, never its own clock; its RPDO deadline and heartbeat consumer count SYNCs (a master that stops
-    sending them stops time: nothing moves, nothing is missed);
-  - ``CLOCK_WALL`` (2): the wall clock, as a real drive: a SYNC later than its period runs the cycles of the gap
-    first (the plant moves on under the held setpoint, the RPDO deadline counts them), from the SYNC's receive
-    time.
+    sending them stops time: nothing moves, nothing is missed).
+
+A master on the wall clock leaves it at 0: it then steps one cycle per SYNC also where a late master skipped
+slots (an open problem, docs/timing.md: the receive stamps cannot tell a late master from the emulator's own
+late process).
 """
 
 from __future__ import annotations
@@ -27,5 +28,5 @@ MARK_SUB = 1
 CLOCK_SUB = 2
 #: 0x5FFF:1 of drivectl's emulated drive (its [DeviceInfo] VendorNumber)
 EMULATOR_MARK = 0x00D71C70
-CLOCK_OWN, CLOCK_LOCKSTEP, CLOCK_WALL = 0, 1, 2
-CLOCK_NAMES = {CLOCK_OWN: "own", CLOCK_LOCKSTEP: "lockstep", CLOCK_WALL: "wall"}
+CLOCK_OWN, CLOCK_LOCKSTEP = 0, 1
+CLOCK_NAMES = {CLOCK_OWN: "own", CLOCK_LOCKSTEP: "lockstep"}

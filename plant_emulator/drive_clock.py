@@ -25,7 +25,7 @@ import time
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_OPERATIONAL, NmtState
-from drivectl.driver.emulator_clock import CLOCK_LOCKSTEP, CLOCK_WALL
+from drivectl.driver.emulator_clock import CLOCK_LOCKSTEP
 from drivectl.plant_emulator.drive_constants import (
     ERROR_RESET,
     FAULTED,
@@ -35,9 +35,6 @@ from drivectl.plant_emulator.drive_constants import (
     SYNC_LOSS_MS,
 )
 from drivectl.plant_emulator.pdo_rules import Tpdo
-
-#: the most cycles a late SYNC runs first on the wall clock (past the SYNC-loss window serve() runs them)
-CATCH_UP_CYCLES = 1000
 
 
 class DriveClock:
@@ -60,22 +57,8 @@ class DriveClock:
             return
         if SYNC_LENGTH_ERROR in self._errors:
             self._clear_error(SYNC_LENGTH_ERROR)
-        if self.master_clock == CLOCK_WALL:
-            self._catch_up(timestamp)
         self._synced = True  # serve() re-anchors the wall clock here
         self._cycle(sync=True)
-
-    def _catch_up(self, received: float) -> None:
-        """The master runs on the wall clock (0x5FFF:2 = wall): the cycles between the last SYNC and this one,
-        received at ``received`` (the bus's receive stamp, s), run first on the drive's own clock, the setpoint
-        held, as a real drive's plant moves on while a late master is silent. A gap under 1.5 periods is one
-        cycle (the transport's jitter is not the master's lateness); serve() has run a gap past its window."""
-        last, self._sync_wall = self._sync_wall, received
-        if last is None or self._free_running:
-            return
-        gap = (received - last) * 1000.0 / self.cycle_ms
-        for _ in range(min(int(gap - 0.5), CATCH_UP_CYCLES)):
-            self._cycle(sync=False)
 
     def _cycle(self, sync: bool) -> None:
         """One cycle of the drive: at a SYNC (``sync``) or on its own clock."""
@@ -170,10 +153,9 @@ class DriveClock:
 
     def _set_master_clock(self, mode: int) -> None:
         """The master's clock (0x5FFF:2, driver/emulator_clock.py): lockstep, the drive's time is the SYNC count and
-        nothing else (never its own clock: a slow master is never late, a silent one stops time); wall, a SYNC
-        later than its period first runs the cycles of the gap (_on_sync); own, as at power-on."""
+        nothing else (never its own clock: a slow master is never late, a silent one stops time); own, as at
+        power-on."""
         self.master_clock = mode
-        self._sync_wall = None
         if mode == CLOCK_LOCKSTEP:
             self._window_ms, self._free_running = math.inf, False
         elif self._window_ms == math.inf:

@@ -308,39 +308,6 @@ def test_the_drives_own_absence_is_not_the_masters_silence(served):
     assert s.reactions == [0x8250] and 0.29 <= s.now - t <= 0.32
 
 
-def _cycles(drive) -> int:
-    return drive.drive.syncs + drive.drive.free_steps
-
-
-def test_told_the_master_is_on_the_wall_clock_a_late_sync_first_runs_the_cycles_of_its_gap(served):
-    """Issue 39 point 2: across processes the drive stepped one cycle per SYNC, so when a wall-clock master woke
-    late and skipped slots its reference moved on by them while the plant moved one cycle (at 74 mm/s ten late
-    wake-ups of 4-8 ms left x 0.59 mm behind a reference that its master skipped). Told the master's clock is the
-    wall clock (0x5FFF:2 = 2, as a paced master tells drivectl's emulated drive), a SYNC later than its period
-    first runs the cycles of the gap, from its receive stamp, the setpoint held; the RPDO deadline counts them."""
-    from drivectl.driver.emulator_clock import CLOCK_SUB, CLOCK_WALL, EMULATOR_MARK, EMULATOR_OBJECT, MARK_SUB
-
-    s = served
-    assert s.sdo_write(EMULATOR_OBJECT, MARK_SUB, 0, 4)[0] == 0x80  # read-only: a write is aborted
-    s.send(0x601, bytes([0x40, EMULATOR_OBJECT & 0xFF, EMULATOR_OBJECT >> 8, MARK_SUB, 0, 0, 0, 0]))
-    answer = next(m for m in s.serve(0.0) if m.arbitration_id == 0x581)
-    assert int.from_bytes(answer.data[4:8], "little") == EMULATOR_MARK  # how a master knows the emulator
-    s.sdo_write(0x1400, 5, 17, 2)  # RPDO deadline 17 ms
-    s.enable()
-    assert s.sdo_write(EMULATOR_OBJECT, CLOCK_SUB, CLOCK_WALL, 1)[0] == 0x60
-    d, t = s.drive, 1000.0
-    before = _cycles(d)
-    for gap in (0.0, 0.001, 0.0093, 0.0014, 0.001):  # the first anchors the clock; 9.3 ms late: 8 more cycles
-        t += gap
-        s.send(0x201, struct.pack("<Hh", 0x0F, 0))
-        s.serve(0.0)
-        s.net.notify(0x080, b"", t)
-    assert _cycles(d) - before == 1 + 1 + 9 + 1 + 1
-    assert s.reactions == [] and d.drive.power is cia402.PowerState.OPERATION_ENABLED
-    s.net.notify(0x080, b"", t + 0.030)  # 30 ms without a setpoint: past the deadline, caught in the gap's cycles
-    assert d.drive.power is cia402.PowerState.SWITCH_ON_DISABLED and d.drive.error_code == 0x8250
-
-
 def test_told_the_master_is_in_lockstep_the_drive_s_time_is_the_sync_count_only(served):
     """Issue 39 point 5: in lockstep across processes (0x5FFF:2 = 1) the drive never runs on its own clock: a master
     silent for seconds (a slow host's lockstep wait, a user idle in the shell) stops its time, nothing is missed

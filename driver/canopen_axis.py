@@ -57,6 +57,7 @@ from drivectl.driver.cia301 import (
     NmtState,
 )
 from drivectl.driver.cia402 import MasterStateMachine, PowerState
+from drivectl.driver.emulator_clock import CLOCK_OWN, CLOCK_SLOTS
 from drivectl.driver.enable_check import enable_blocker
 from drivectl.driver.frame_guard import FrameGuard
 from drivectl.driver.network import LockstepNetwork
@@ -572,6 +573,8 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self.clock.start_periodic(self.dt)  # where the transport can: the SYNC off the Python thread
         else:
             self.clock.stop_periodic()
+        if not self.in_process and not self.lockstep_peer:
+            self._tell_slots(wall is not None)
         self._paced = wall is not None
         self._wall = wall or _no_wall
         self._lost_limit, self._tpdo_budget = self.max_lost_cycles, self.tpdo_timeout
@@ -582,6 +585,24 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             deadline = self.rpdo_timeout_ms * 1e-3
             self._lost_limit = max(self.max_lost_cycles, int(deadline / self.dt + 1e-9) - 1)
             self._tpdo_budget = min(self.tpdo_timeout, 0.5 * deadline)
+
+    def _tell_slots(self, on: bool) -> None:
+        """A paced run across processes: drivectl's emulated drive steps by the master's slots, which the SYNC's
+        counter byte carries, a late wake-up's skipped ones included (driver/emulator_clock.py CLOCK_SLOTS), so
+        its plant moves on while the master is late as a real drive's does. Only while every drive on this clock
+        answered drivectl's mark (a real drive sees no counter); unanswered, the drive stays SYNC-locked."""
+        clock = self.clock
+        if not on:
+            clock.slot_counter = False
+            clock.slot_vetoed = False
+        elif not self.is_emulator():
+            clock.slot_counter, clock.slot_vetoed = False, True
+        try:
+            self.tell_clock(CLOCK_SLOTS if on and not clock.slot_vetoed else CLOCK_OWN)
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError, can.CanError):
+            return  # the drive may be gone: its own watchdogs stop it
+        if on and not clock.slot_vetoed:
+            clock.slot_counter = True
 
     def skip(self, slots: int) -> None:
         self.clock.skip(slots)  # the bus's axes share the clock, each says the same: set, not added

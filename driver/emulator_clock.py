@@ -14,11 +14,13 @@ its plant at the SYNCs it receives, so it must know what the time between two SY
     window (the heartbeat consumer time, 300 ms) on its own clock;
   - ``CLOCK_LOCKSTEP`` (1): time is the SYNC count and nothing else: one cycle per SYNC however long the master
     takes, never its own clock; its RPDO deadline and heartbeat consumer count SYNCs (a master that stops
-    sending them stops time: nothing moves, nothing is missed).
+    sending them stops time: nothing moves, nothing is missed);
+  - ``CLOCK_SLOTS`` (2): a master on the wall clock whose SYNC carries its slot count (the CiA 301 SYNC counter
+    byte, ``slot % SLOT_COUNTER_SPAN + 1``, counting the slots a late wake-up skipped as well): a SYNC whose
+    counter jumped by n first runs the n - 1 cycles of the gap, the setpoint held, as a real drive's plant moves
+    on while a late master is silent (its RPDO deadline counting them). The master sends the counter only while
+    every drive it runs answered drivectl's mark: a real drive sees the plain SYNC.
 
-A master on the wall clock leaves it at 0: it then steps one cycle per SYNC also where a late master skipped
-slots (an open problem, docs/timing.md: the receive stamps cannot tell a late master from the emulator's own
-late process).
 """
 
 from __future__ import annotations
@@ -28,5 +30,7 @@ MARK_SUB = 1
 CLOCK_SUB = 2
 #: 0x5FFF:1 of drivectl's emulated drive (its [DeviceInfo] VendorNumber)
 EMULATOR_MARK = 0x00D71C70
-CLOCK_OWN, CLOCK_LOCKSTEP = 0, 1
-CLOCK_NAMES = {CLOCK_OWN: "own", CLOCK_LOCKSTEP: "lockstep"}
+CLOCK_OWN, CLOCK_LOCKSTEP, CLOCK_SLOTS = 0, 1, 2
+CLOCK_NAMES = {CLOCK_OWN: "own", CLOCK_LOCKSTEP: "lockstep", CLOCK_SLOTS: "slots"}
+#: the SYNC counter's values (CiA 301: 1..240 at most): the slot count modulo this, plus one
+SLOT_COUNTER_SPAN = 240

@@ -7,6 +7,7 @@ import can
 import canopen
 
 from drivectl.driver.cia301 import HEARTBEAT_BASE, MASTER_NODE_ID, SYNC_COB_ID, NmtState
+from drivectl.driver.emulator_clock import SLOT_COUNTER_SPAN
 from drivectl.driver.sync_source import SYNC_WAIT_PERIODS, PeriodicSync, start_periodic_sync
 
 
@@ -35,6 +36,9 @@ class SyncClock:
         #: did not wait for): only across one may an answer to an earlier SYNC still be on its way
         self.late_sync = -1
         self._periodic_syncs = 0  # ``syncs`` when the periodic transmit started
+        #: the SYNC carries the slot count as its counter byte (only to drivectl's emulated drives: CanopenAxis.pace)
+        self.slot_counter = False
+        self.slot_vetoed = False  # a drive of the bus is not drivectl's emulator: no counter this run
 
     def skip(self, slots: int) -> None:
         """The next tick's SYNC is ``slots`` slots after the last one plus one: its cycle counts them, so what the
@@ -48,7 +52,8 @@ class SyncClock:
             self.syncs += 1
             if skipped:
                 self.late_sync = self.syncs
-            self.network.send_message(self.cob_id, b"")
+            self.network.send_message(self.cob_id, bytes((self.cycle % SLOT_COUNTER_SPAN + 1,))
+                                      if self.slot_counter else b"")
         else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
             seen = self.periodic.wait_beyond(self.cycle - self._periodic_base)
             if self._periodic_base + seen == prev:

@@ -25,7 +25,7 @@ import time
 
 from drivectl.driver import cia402
 from drivectl.driver.cia301 import HEARTBEAT_BASE, NMT_OPERATIONAL, NmtState
-from drivectl.driver.emulator_clock import CLOCK_LOCKSTEP
+from drivectl.driver.emulator_clock import CLOCK_LOCKSTEP, CLOCK_SLOTS, SLOT_COUNTER_SPAN
 from drivectl.plant_emulator.drive_constants import (
     ERROR_RESET,
     FAULTED,
@@ -57,8 +57,21 @@ class DriveClock:
             return
         if SYNC_LENGTH_ERROR in self._errors:
             self._clear_error(SYNC_LENGTH_ERROR)
+        if self.master_clock == CLOCK_SLOTS and data:
+            self._catch_up(data[0])
         self._synced = True  # serve() re-anchors the wall clock here
         self._cycle(sync=True)
+
+    def _catch_up(self, counter: int) -> None:
+        """The master's slot count in the SYNC counter (0x5FFF:2 = slots): the slots since the last SYNC but this
+        one's run first on the drive's own clock, the setpoint held (a late master skipped them; a real drive's
+        plant moves on meanwhile, and its RPDO deadline counts them). After its own clock ran (no SYNC for the
+        SYNC-loss window) the counter only sets the count again."""
+        last, self._slot = self._slot, counter
+        if last is None or self._free_running:
+            return
+        for _ in range((counter - last - 1) % SLOT_COUNTER_SPAN):
+            self._cycle(sync=False)
 
     def _cycle(self, sync: bool) -> None:
         """One cycle of the drive: at a SYNC (``sync``) or on its own clock."""
@@ -153,13 +166,16 @@ class DriveClock:
 
     def _set_master_clock(self, mode: int) -> None:
         """The master's clock (0x5FFF:2, driver/emulator_clock.py): lockstep, the drive's time is the SYNC count and
-        nothing else (never its own clock: a slow master is never late, a silent one stops time); own, as at
-        power-on."""
-        self.master_clock = mode
+        nothing else (never its own clock: a slow master is never late, a silent one stops time); slots, a SYNC
+        first runs the slots its counter says the master skipped (_catch_up); own, as at power-on."""
+        self.master_clock, self._slot = mode, None
         if mode == CLOCK_LOCKSTEP:
             self._window_ms, self._free_running = math.inf, False
-        elif self._window_ms == math.inf:
-            self._window_ms = None
+        else:
+            if self._window_ms == math.inf:
+                self._window_ms = None
+            if mode == CLOCK_SLOTS:
+                self._free_running = False  # the master's SYNCs are the clock from here (serve() judges their loss)
 
     def idle(self) -> None:
         """One cycle of the drive's own clock with no SYNC received (the master is silent)."""

@@ -159,6 +159,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self.master_clock = CLOCK_OWN  # what the master said its clock is (0x5FFF:2, driver/emulator_clock.py)
+        self._slot: int | None = None  # the last SYNC's counter (the master's slot count, CLOCK_SLOTS)
         self._heartbeat_cycles = 0
         self._consumer: tuple[int, int] | None = None  # master node id, timeout ms (0x1016 sub 1)
         self._ms_since_master: float | None = None  # None until the first heartbeat of the master

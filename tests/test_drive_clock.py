@@ -331,3 +331,27 @@ def test_told_the_master_is_in_lockstep_the_drive_s_time_is_the_sync_count_only(
     s.send(0x000, b"\x81\x01")  # NMT reset node: the clock is the drive's own again
     s.serve(0.0)
     assert d.master_clock == CLOCK_OWN
+
+
+def test_told_the_master_s_slots_a_sync_whose_counter_jumped_first_runs_the_gap(served):
+    """Issue 39 point 2: a paced master tells drivectl's emulated drive to step by its slots (0x5FFF:2 = 2) and
+    sends its slot count as the SYNC counter byte: a SYNC whose counter jumped by n (the master woke late and
+    skipped n - 1 slots) first runs n - 1 cycles on the drive's own clock, the setpoint held; the RPDO deadline
+    counts them (a late master is caught by the drive, as by a real one)."""
+    from drivectl.driver.emulator_clock import CLOCK_SLOTS, CLOCK_SUB, EMULATOR_OBJECT
+
+    s = served
+    s.sdo_write(0x1400, 5, 17, 2)  # RPDO deadline 17 ms
+    s.enable()
+    assert s.sdo_write(EMULATOR_OBJECT, CLOCK_SUB, CLOCK_SLOTS, 1)[0] == 0x60
+    d = s.drive.drive
+    before = d.syncs + d.free_steps
+    for counter in (239, 240, 1, 6, 7):  # (the counter wraps from 240 to 1)  slots: -, 1, 1, 5, 1
+        s.send(0x201, struct.pack("<Hh", 0x0F, 0))
+        s.send(0x080, bytes([counter]))
+        s.serve(0.001)
+    assert d.syncs + d.free_steps - before == 1 + 1 + 1 + 5 + 1 and d.free_steps == 4
+    assert s.reactions == [] and d.power is cia402.PowerState.OPERATION_ENABLED
+    s.send(0x080, bytes([7 + 18]))  # 18 slots without a setpoint: past the 17 ms deadline, caught in the gap
+    s.serve(0.001)
+    assert d.power is cia402.PowerState.SWITCH_ON_DISABLED and d.error_code == 0x8250

@@ -402,9 +402,11 @@ class _AcrossProcesses:
     clock, with the drive's answers delivered to it on a schedule: ``late`` SYNCs' answers come after the master's
     next SYNC (ahead of that one's own), ``lost`` SYNCs' never. A wait for TPDOs that do not come takes the
     master's whole budget of simulated time, as on a real host; ``wake_ups`` = {slot: s} wakes the loop late.
-    The drive runs on the wall clock (as a real drive, or `drivectl emulate` with a paced master)."""
+    ``drive_clock``: "wall", the drive on the wall clock (as a real drive); "sync", one cycle per SYNC (as
+    `drivectl emulate` was told nothing); "slots", one cycle per slot of the master's SYNC counter (as `drivectl
+    emulate` is told by a paced master)."""
 
-    def __init__(self, tmp_path, *, late=(), lost=(), wake_ups=None):
+    def __init__(self, tmp_path, *, late=(), lost=(), wake_ups=None, drive_clock="wall"):
         from drivectl.controllers.registry import make_controller
         from drivectl.controllers.runtime.cycle import Channel
         from drivectl.controllers.runtime.loop import AxisState, ServoLoop
@@ -465,7 +467,13 @@ class _AcrossProcesses:
         self.loop = loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={"x": m.deadlines["x"].seconds},
                                      now=clock.now, sleep=sleep, fault_dir=tmp_path, gc_control=False,
                                      gil_switch=False, ring_s=10.0)
-        ax.network.lockstep.pace(clock.now)  # the drive on the wall clock (the master's pace() does not, here)
+        if drive_clock == "wall":  # the drive on the wall clock (the master's pace() does not, here)
+            ax.network.lockstep.pace(clock.now)
+        elif drive_clock == "slots":  # SYNC-locked, stepping by the master's slots (what pace() tells across processes)
+            from drivectl.driver.emulator_clock import CLOCK_SLOTS
+
+            m.drives["x"]._set_master_clock(CLOCK_SLOTS)
+            ax.clock.slot_counter = True
         loop.start()
         rt = loop.axes["x"]
         rt.state = AxisState.ENABLING
@@ -538,3 +546,26 @@ A frame taken for an owed answer with none after it is not used (it may be stale
     # degraded more than by a late answer: each loss costs two 8.5 ms waits (the second for the answer that may
     # still come behind the one taken as owed) and the loop's late wake-ups after them; 0.23 mm, never a runaway
     assert np.max(np.abs(err)) < 0.3e-3
+
+
+def test_across_processes_the_emulated_drive_steps_by_the_master_s_slots_not_by_its_syncs(tmp_path):
+    """Issue 39 point 2, the other half: `drivectl emulate` steps its plant at the SYNCs it receives. A wall-clock
+    master that wakes late skips its reference by the slots it lost (a real drive's plant moves on meanwhile);
+    the emulated plant moved one cycle, so the reference ran ahead of the axis by the skipped slots' motion: ten
+    4-8 ms late wake-ups at 74 mm/s left x 0.59 mm from its reference. A paced master now sends its slot count
+    as the SYNC's counter byte to drivectl's emulated drive (0x5FFF:2 = slots): a SYNC whose counter jumped
+    first runs the cycles of the gap, the setpoint held, as on a real drive: 3.2 um (on a drive on the wall clock,
+    0.28 um; with ten late answers on top, 0.87 mm SYNC-locked, 2.1 um by slots)."""
+    wake = {450 + 111 * k: 0.004 + 0.001 * (k % 5) for k in range(10)}
+    errs = {}
+    for how in ("sync", "slots"):
+        run = _AcrossProcesses(tmp_path, wake_ups=wake, drive_clock=how)
+        try:
+            errs[how] = np.max(np.abs(run.move(1800)))
+            assert not run.loop.faults and run.loop.status()["skipped_cycles"] == 60
+            steps = run.m.drives["x"].drive.free_steps
+        finally:
+            run.close()
+        assert (steps == 0) == (how == "sync")  # the gaps' cycles ran on the drive's own clock
+    assert errs["sync"] > 0.3e-3  # the mechanism: the reference ahead by the skipped slots' motion
+    assert errs["slots"] < _AcrossProcesses.TRACKING_M

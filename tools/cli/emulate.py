@@ -10,7 +10,9 @@ at them. Without kernel CAN the emulator is itself the adapter:
 
 The plant advances one cycle per SYNC received (simulated time), so a run across processes gives
 the same trace as the lockstep virtual bus, bit for bit (``drivectl trace --clock lockstep`` tells the
-drives so, 0x5FFF: they never run on their own clock then, however slow the master; docs/timing.md).
+drives so, 0x5FFF: they never run on their own clock then, however slow the master); a master paced
+on the wall clock tells them to step by the slot count its SYNC's counter byte carries, so a late
+master's skipped slots run on the plant as on a real drive (docs/timing.md).
 
 ``--fault [AXIS/]KIND[:k=v,...]@TIME`` breaks a drive on cue (plant_emulator/faults.py) for the
 master at the other end to detect; ``master-dead`` makes the emulator stop hearing the master (as if

@@ -37,7 +37,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -47,6 +47,7 @@ from drivectl.plant_emulator.models import PlantSpec
 from drivectl.tools.cli.exits import exits_on_error
 from drivectl.tools.commissioning.bode_excitation import BIAS_RAMP_S, BiasRamp, ExcitedController, Hold, multisine
 from drivectl.tools.commissioning.frf import BodeError, Mode, estimate_frf, find_mode, model_frf, model_modes
+from drivectl.tools.commissioning.margins import OPEN_FMAX, OPEN_FMIN
 from drivectl.tracefile.format import Trace, atomic_write_bytes, atomic_write_text
 
 #: length of one multisine period, s: the frequency resolution is its inverse (1 Hz), and 1 s keeps
@@ -253,12 +254,25 @@ def check_band(fmin: float, fmax: float, dt: float) -> None:
                         "(Nyquist)")
 
 
+class Plan(NamedTuple):
+    """The excitation planned (and checked) before anything opens."""
+
+    one: np.ndarray  # one period of the multisine
+    n: int  # samples per period
+    periods: int
+    bias: BiasRamp | None
+    amplitude: float
+    spec: PlantSpec  # the model
+    plant: PlantSpec  # what the axis plays
+    freqs: np.ndarray  # the excited lines, Hz
+
+
 def plan_excitation(cfg: MachineConfig, axis_name: str, *, seconds: float = 20.0, amplitude: float | None = None,
                     fmin: float = DEFAULT_FMIN, fmax: float = DEFAULT_FMAX, model: str | None = None,
                     plant: str | None = None, bias_velocity: float | None = None, period_s: float = PERIOD_S
-                    ) -> tuple[np.ndarray, int, int, BiasRamp | None, float, PlantSpec, PlantSpec]:
-    """Check the request and plan the excitation before anything opens: (one period, n, periods, bias,
-    amplitude, model spec, plant spec). BodeError / ConfigError (one line) on bad input."""
+                    ) -> Plan:
+    """Check the request and plan the excitation before anything opens. BodeError / ConfigError (one
+    line) on bad input."""
     from drivectl.machine.build import model_specs, plant_specs
 
     ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
@@ -285,15 +299,15 @@ def plan_excitation(cfg: MachineConfig, axis_name: str, *, seconds: float = 20.0
     if not (math.isfinite(amplitude) and 0 < amplitude <= 0.5 * max_eff):
         raise BodeError(f"bode: --amplitude: must be > 0 and at most half of axes.{axis_name}.limits.max_effort "
                         f"({0.5 * max_eff:g}), got {amplitude:g}")
-    one, _ = multisine(n, dt, fmin, fmax, amplitude)
-    return one, n, periods, bias, amplitude, spec, plants[axis_name]
+    one, lines = multisine(n, dt, fmin, fmax, amplitude)
+    return Plan(one, n, periods, bias, amplitude, spec, plants[axis_name], lines)
 
 
 def excited_run(cfg: MachineConfig, axis_name: str, *, sim: bool = False, seconds: float = 20.0,
                 amplitude: float | None = None, fmin: float = DEFAULT_FMIN, fmax: float = DEFAULT_FMAX,
                 model: str | None = None, plant: str | None = None, controller: Controller | None = None,
                 noise: float = 0.0, seed: int = 0, bias_velocity: float | None = None, period_s: float = PERIOD_S,
-                planned: tuple | None = None) -> ExcitedRun:
+                planned: Plan | None = None) -> ExcitedRun:
     """Run the axis under its controller (or ``controller``) with the multisine added to the effort (see
     :func:`measure_frf` for the arguments); ``planned``: the result of :func:`plan_excitation` already
     made (and checked) by the caller."""
@@ -303,7 +317,7 @@ def excited_run(cfg: MachineConfig, axis_name: str, *, sim: bool = False, second
 
     ac = cfg.axis(axis_name)
     dt = cfg.cycle_s
-    one, n, periods, bias, amplitude, spec, plant_spec = planned or plan_excitation(
+    one, n, periods, bias, amplitude, spec, plant_spec, lines = planned or plan_excitation(
         cfg, axis_name, seconds=seconds, amplitude=amplitude, fmin=fmin, fmax=fmax, model=model, plant=plant,
         bias_velocity=bias_velocity, period_s=period_s)
     exc = np.tile(one, periods)
@@ -324,9 +338,7 @@ def excited_run(cfg: MachineConfig, axis_name: str, *, sim: bool = False, second
                            duration=(rows - 1) * dt)
     finally:
         machine.close()
-    df = 1.0 / (n * dt)
-    lines = np.arange(math.ceil(fmin / df - 1e-9), math.floor(fmax / df + 1e-9) + 1)
-    return ExcitedRun(res.trace, exc, n, periods, lines[lines > 0] * df, spec, plant_spec, bias, amplitude, inner,
+    return ExcitedRun(res.trace, exc, n, periods, lines, spec, plant_spec, bias, amplitude, inner,
                       machine.bus, res.stop.value, res.detail, dt)
 
 
@@ -506,8 +518,17 @@ def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="measure about this constant velocity (m/s) so a friction axis never sticks (default: "
                    "automatic where the model has Coulomb friction, twice the excitation's peak velocity; 0 = "
                    "hold still)")
-    p.add_argument("--fmin", type=float, default=DEFAULT_FMIN, help=f"lowest line, Hz (default {DEFAULT_FMIN:g})")
-    p.add_argument("--fmax", type=float, default=DEFAULT_FMAX, help=f"highest line, Hz (default {DEFAULT_FMAX:g})")
+    p.add_argument("--fmin", type=float, help=f"lowest line, Hz (default {DEFAULT_FMIN:g}; --loop open "
+                   f"{OPEN_FMIN:g})")
+    p.add_argument("--fmax", type=float, help=f"highest line, Hz (default {DEFAULT_FMAX:g}; --loop open {OPEN_FMAX:g})")
+    p.add_argument("--loop", choices=("closed", "open"), default="closed",
+                   help="closed (default): the response effort -> position and its mode; open: the sensitivity S "
+                   "= effort / injected disturbance, the open loop L = (1 - S) / S and its stability margins (gain "
+                   "and phase margin, Ms, bandwidth), written to bode-open-AXIS.csv/.png; --json then prints "
+                   '{"axis", "controller", "gm_db", "gm_hz", "pm_deg", "pm_hz", "ms", "bandwidth_hz", "coherence_min"}')
+    p.add_argument("--period", type=float, metavar="S",
+                   help="--loop open: the multisine's period, s (default 1, rounded up to whole periods of a "
+                   "disturbance the model names); its inverse is the line spacing")
     return p
 
 
@@ -524,24 +545,55 @@ def cmd_bode(args: argparse.Namespace) -> int:
         check_output_folder(args.out, "--out", 5_000_000)
     except TraceError as exc:
         raise ConfigError(str(exc)) from None
+    if getattr(args, "loop", "closed") == "open":
+        return _cmd_open(cfg, args)
+    if getattr(args, "period", None) is not None:
+        raise BodeError("bode: --period: only with --loop open (the closed loop's period is 1 s)")
     res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
-                      fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
+                      fmin=DEFAULT_FMIN if args.fmin is None else args.fmin,
+                      fmax=DEFAULT_FMAX if args.fmax is None else args.fmax, model=args.model, plant=args.plant,
                       bias_velocity=args.bias_velocity)
     if not res.ok:
-        from drivectl.controllers.runtime.safe_stop import end_state_line
-
-        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
-        after = m.get("safe_after_cycles", "unknown")
-        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
-                               {res.axis: None if after == "unknown" else int(after)})
-        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
-              "no response written", file=sys.stderr)
+        _stopped(res)
         return 1
     write_bode(res, args.out)
     if args.json:
         print(json.dumps(res.to_json()))
     else:
         print(summary_text(res), end="")
+        for p in res.files:
+            print(f"wrote {p}")
+    return 0
+
+
+def _stopped(res: Any) -> None:
+    """The one line of a measurement the loop stopped: the end state as the drive reported it."""
+    from drivectl.controllers.runtime.safe_stop import end_state_line
+
+    m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+    after = m.get("safe_after_cycles", "unknown")
+    ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                           {res.axis: None if after == "unknown" else int(after)})
+    print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
+          "no response written", file=sys.stderr)
+
+
+def _cmd_open(cfg: MachineConfig, args: argparse.Namespace) -> int:
+    """`bode --loop open`: the margins (tools/commissioning/margins.py)."""
+    from drivectl.tools.commissioning import margins as mg
+
+    res = mg.measure_open_loop(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
+                               fmin=mg.OPEN_FMIN if args.fmin is None else args.fmin,
+                               fmax=mg.OPEN_FMAX if args.fmax is None else args.fmax, model=args.model,
+                               plant=args.plant, bias_velocity=args.bias_velocity, period_s=args.period)
+    if not res.ok:
+        _stopped(res)
+        return 1
+    mg.write_open_loop(res, args.out)
+    if args.json:
+        print(json.dumps(res.to_json()))
+    else:
+        print(mg.summary_text(res), end="")
         for p in res.files:
             print(f"wrote {p}")
     return 0

@@ -38,11 +38,11 @@ class LinearForm:
         """K(e^{j w dt}) at ``freqs`` (Hz): shape (len(freqs), 2), effort per [position, velocity]."""
         z = np.exp(1j * 2 * math.pi * np.asarray(freqs, dtype=float) * self.dt)
         n = self.A.shape[0]
-        eye = np.eye(n)
-        out = np.empty((len(z), 2), dtype=complex)
-        for i, zi in enumerate(z):
-            out[i] = (self.C @ np.linalg.solve(zi * eye - self.A, self.B) if n else 0.0) + self.D
-        return out
+        if n == 0:
+            return np.tile(self.D.astype(complex), (len(z), 1))
+        # one batched solve for every frequency: (zI - A)^-1 B, then C ... + D
+        x = np.linalg.solve(z[:, None, None] * np.eye(n) - self.A, np.broadcast_to(self.B, (len(z), n, 2)))
+        return np.einsum("j,fjk->fk", self.C, x) + self.D
 
     def simulate(self, y: np.ndarray) -> np.ndarray:
         """The effort for a sequence of feedback rows ``y`` (shape (N, 2)), from the zero state."""

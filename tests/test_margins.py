@@ -8,12 +8,12 @@ bus, with a multisine added to the law's effort:
 * z (two-mass): pid (gains for a 5 Hz loop; the defaults are paper 004's N/m for a 88 kg axis), mbc (the
   default). pid-dob has no two-mass form (its law needs a rigid plant's mass) and is not compared there.
 
-The reference: python-control's ``stability_margins`` on the discrete loop L = -K(z) z^-1 P_zoh(z) built
-here from the plant's parameters (the controller's linear form at 1 kHz, the one-cycle transport delay,
-the zero-order hold), evaluated as frequency data on a dense grid (python-control's polynomial method
-misplaces the phase crossovers of the pid-dob loop: poles near z = 1 in a 9th-order polynomial), its
-crossovers restricted to the excited band and chosen as python-control chooses (nearest 0 dB, nearest
-0 deg). Agreement: 1 dB, 3 deg, 5 % of Ms.
+The reference (bench/margins.py ``reference_margins``, which the benchmark uses too): python-control's
+``stability_margins`` on the discrete loop L = -K(z) z^-1 P_zoh(z) built from the plant's parameters (the
+controller's linear form at 1 kHz, the one-cycle transport delay, the zero-order hold), evaluated as
+frequency data on a dense grid (python-control's polynomial method misplaces the phase crossovers of the
+pid-dob loop: poles near z = 1 in a 9th-order polynomial), its crossovers restricted to the excited band
+and chosen as python-control chooses (nearest 0 dB, nearest 0 deg). Agreement: 1 dB, 3 deg, 5 % of Ms.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,7 +35,9 @@ from drivectl.profiles.base import Reference
 from drivectl.tools.commissioning.bode import add_bode_parser, cmd_bode
 from drivectl.tools.commissioning.margins import JSON_KEYS, measure_open_loop, summary_text
 
-ct = pytest.importorskip("control")
+pytest.importorskip("control")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from margins import reference_margins  # noqa: E402 - bench/margins.py: the python-control reference, one place
 
 #: PID gains for the two-mass axis: a 5 Hz loop, gain-stabilised below the 89 Hz mode
 Z_PID = {"kp": 1430.0, "kd": 45.0, "ki": 4500.0, "d_filter_hz": 150.0}
@@ -46,39 +50,6 @@ LOOPS = [("x", "pid", {}, 3.0, 0.5), ("x", "pid-dob", {}, 3.0, 0.5), ("x", "mbc"
 @pytest.fixture(autouse=True)
 def _embedded_config(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("DRIVECTL_CONFIG", raising=False)
-
-
-def _plant_ss(spec, direction: float):
-    """The plant's linear part from its parameters (effort -> table position and velocity), continuous; on
-    a rigid axis the viscous coefficient of the direction it slides in."""
-    p = spec.params
-    if spec.model == "rigid":
-        m = p["mass"]
-        c = p["c_pos"] if direction > 0 else p["c_neg"] if direction < 0 else 0.5 * (p["c_pos"] + p["c_neg"])
-        a, b = np.array([[0.0, 1.0], [0.0, -c / m]]), np.array([[0.0], [1.0 / m]])
-        out = np.eye(2)
-    else:
-        m1, m2, k, n, b1, b2 = (p[x] for x in ("m1", "m2", "k", "n", "b1", "b2"))
-        a = np.array([[0, 1, 0, 0], [-k / m1, -(n + b1) / m1, k / m1, n / m1], [0, 0, 0, 1],
-                      [k / m2, n / m2, -k / m2, -(n + b2) / m2]], dtype=float)
-        b = np.array([[0.0], [1.0 / m1], [0.0], [0.0]])
-        out = np.array([[0.0, 0, 1, 0], [0, 0, 0, 1]])
-    return ct.ss(a, b, out, np.zeros((2, 1)))
-
-
-def reference_margins(law, spec, dt: float, direction: float, band: tuple[float, float]) -> dict[str, float | None]:
-    plant = ct.c2d(_plant_ss(spec, direction), dt, "zoh")
-    delay = ct.ss([[0.0]], [[1.0]], [[1.0]], [[0.0]], dt)  # the one-cycle transport delay
-    form = law.linear_form()
-    k = ct.ss(form.A, form.B, form.C.reshape(1, -1), form.D.reshape(1, 2), dt)
-    loop = -(k * plant * delay)
-    w = 2 * math.pi * np.logspace(math.log10(0.5), math.log10(0.4999 / dt), 8000)
-    gm, pm, sm, wpc, wgc, _ = ct.stability_margins(ct.frd(loop, w), returnall=True)
-    fpc, fgc = wpc / (2 * math.pi), wgc / (2 * math.pi)
-    g = 20 * np.log10(gm[(fpc >= band[0]) & (fpc <= band[1])])
-    p = pm[(fgc >= band[0]) & (fgc <= band[1])]
-    return {"gm_db": float(g[np.argmin(np.abs(g))]) if len(g) else None,
-            "pm_deg": float(p[np.argmin(np.abs(p))]) if len(p) else None, "ms": float(1 / np.min(sm))}
 
 
 @pytest.mark.parametrize(("axis", "controller", "settings", "seconds", "period"), LOOPS,

@@ -66,7 +66,8 @@ def test_text_report_per_corner_beside_the_targets(tmp_path, capsys) -> None:
 
 def test_no_gains_meet_the_targets_one_line_naming_the_binding_one(tmp_path, capsys) -> None:
     # mbc's observer-based loop on z keeps |gm| under 4 dB on some corner whatever its two bandwidths
-    rc = _run(["--axis", "z", "--target", TARGETS, "--candidates", "8", "--corners", "4", "--out", str(tmp_path / "t.toml")])
+    rc = _run(["--axis", "z", "--target", TARGETS, "--candidates", "8", "--corners", "4",
+               "--out", str(tmp_path / "t.toml")])
     cap = capsys.readouterr()
     assert rc == 2 and cap.out == ""
     lines = cap.err.strip().splitlines()

@@ -40,6 +40,7 @@ Library: :func:`measure_open_loop` -> :class:`OpenLoopResult`. CLI: `drivectl bo
 from __future__ import annotations
 
 import io
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -607,7 +608,7 @@ def plot_open_loop(res: OpenLoopResult, path: Path | None = None) -> bytes:
 
 
 def write_open_loop(res: OpenLoopResult, out_dir: str | Path) -> list[Path]:
-    """``bode-open-AXIS.csv`` and ``bode-open-AXIS.png`` in ``out_dir``, each written atomically."""
+    """``bode-open-AXIS.csv``, ``.png`` and ``.json`` (the margins) in ``out_dir``, each written atomically."""
     from drivectl.tracefile.format import atomic_write_text
 
     out = Path(out_dir)
@@ -615,5 +616,8 @@ def write_open_loop(res: OpenLoopResult, out_dir: str | Path) -> list[Path]:
     atomic_write_text(csv, res.csv_text())
     png = out / f"bode-open-{res.axis}.png"
     plot_open_loop(res, png)
-    res.files = [csv, png]
+    # the margins beside the figure, as --json prints them (the console's Axis page shows both)
+    side = out / f"bode-open-{res.axis}.json"
+    atomic_write_text(side, json.dumps({**res.to_json(), "linear": res.linear}) + "\n")
+    res.files = [csv, png, side]
     return res.files

@@ -13,7 +13,8 @@ mean, its standard error ``std(S_p) / sqrt(P)`` is the point's uncertainty, and 
 ``|sum U_p|^2 / (P sum |U_p|^2)`` says how much of ``u`` the excitation explains. ``sigma_L`` follows
 from ``dL = -dS / S^2``.
 
-Margins (:func:`margins_of`), from the lines whose coherence is at least :data:`MIN_COHERENCE`:
+Margins (:func:`margins_of`), from the lines whose coherence is at least :data:`MIN_COHERENCE` and whose
+L is known to :data:`MAX_REL_ERROR` (relative standard error):
 
 * gain margin: at each phase crossover (L crosses the negative real axis between two lines, found by
   linear interpolation of the angle of -L), ``-20 log10 |L|``; the one nearest 0 dB is reported (as
@@ -55,6 +56,10 @@ from drivectl.tools.commissioning.frf import BodeError, linear_matrices
 #: lines whose r-u coherence is below this are left out of the margin search (the loop cancels the
 #: excitation where its gain is high: S is small there and the law's response to quantisation dominates)
 MIN_COHERENCE = 0.8
+#: ... and lines whose L has a relative standard error above this (its phase uncertain by more than ~15 deg:
+#: where |L| is tiny, S ~ 1 and the law's response to quantisation sets L's phase; z above 230 Hz read dozens
+#: of spurious phase crossovers at |L| ~ -50 dB without it)
+MAX_REL_ERROR = 0.25
 #: default band of the open-loop measurement, Hz: the margins of a 1 kHz loop lie between a few Hz and
 #: Nyquist; u = S r needs no position response, so the high lines are as clean as the low ones
 OPEN_FMIN, OPEN_FMAX = 2.0, 450.0
@@ -170,8 +175,8 @@ def _logf(f: np.ndarray, i: int, t: float) -> float:
 def margins_of(freqs: np.ndarray, loop: np.ndarray, sigma: np.ndarray | None = None,
                coherence: np.ndarray | None = None, band: tuple[float, float] | None = None) -> Margins:
     """The margins of the loop ``loop`` sampled at ``freqs`` (ascending, Hz), with the points' standard
-    errors ``sigma`` (None: an exact model) and their coherence (lines below :data:`MIN_COHERENCE` are
-    left out). See the module text."""
+    errors ``sigma`` (None: an exact model) and their coherence (lines below :data:`MIN_COHERENCE`, or
+    whose relative error exceeds :data:`MAX_REL_ERROR`, are left out). See the module text."""
     freqs = np.asarray(freqs, dtype=float)
     loop = np.asarray(loop, dtype=complex)
     band = band or (float(freqs[0]), float(freqs[-1]))
@@ -179,6 +184,8 @@ def margins_of(freqs: np.ndarray, loop: np.ndarray, sigma: np.ndarray | None = N
     use = np.isfinite(loop) & np.isfinite(sig) & (np.abs(loop) > 0)
     if coherence is not None:
         use &= np.asarray(coherence) >= MIN_COHERENCE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        use &= sig <= MAX_REL_ERROR * np.abs(loop)
     f, lp, sg = freqs[use], loop[use], sig[use]
     coh_min = None if coherence is None or not use.any() else float(np.min(np.asarray(coherence)[use]))
     where = f"{band[0]:g}-{band[1]:g} Hz"
@@ -481,7 +488,8 @@ def summary_text(res: OpenLoopResult) -> str:
              + (f", about a constant-velocity bias of {res.bias_velocity * 1e3:.2f} mm/s" if res.bias_velocity else ""),
              "S = effort / injected disturbance, L = (1 - S) / S; coherence min "
              + ("-" if m.coherence_min is None else f"{m.coherence_min:.3f}")
-             + f" (lines under {MIN_COHERENCE:g} left out)"]
+             + f" (lines under {MIN_COHERENCE:g}, or whose L is uncertain by more than {100 * MAX_REL_ERROR:g} %, "
+             "left out)"]
     if not res.linear:
         lines.append(f"{res.controller} is a nonlinear law (no linear form): these margins are describing-function "
                      f"estimates at the excitation's level ({res.amplitude:g} {res.effort_unit} peak), not the "
@@ -506,8 +514,11 @@ def summary_text(res: OpenLoopResult) -> str:
     if len(m.phase_crossovers) > 1 or len(m.gain_crossovers) > 1:
         # the reported one is the nearest to 0 dB / 0 deg; a negative gain margin is a gain *reduction* margin
         # (the loop is conditionally stable: less gain destabilises it)
-        lines.append("phase crossovers: " + ", ".join(f"{hz:.1f} Hz ({g:+.2f} dB)" for g, hz in m.phase_crossovers)
-                     + "; gain crossovers: " + ", ".join(f"{hz:.1f} Hz ({p:+.1f} deg)" for p, hz in m.gain_crossovers))
+        def some(items: list[str]) -> str:
+            return ", ".join(items[:6]) + (f" and {len(items) - 6} more" if len(items) > 6 else "")
+
+        lines.append("phase crossovers: " + some([f"{hz:.1f} Hz ({g:+.2f} dB)" for g, hz in m.phase_crossovers])
+                     + "; gain crossovers: " + some([f"{hz:.1f} Hz ({p:+.1f} deg)" for p, hz in m.gain_crossovers]))
     if m.gm_db.value is not None and m.gm_db.value < 0:
         lines.append("the gain margin is negative: at that phase crossover |L| > 1, so it is the gain *reduction* "
                      "that destabilises the loop (conditionally stable)")
@@ -541,12 +552,14 @@ def plot_open_loop(res: OpenLoopResult, path: Path | None = None) -> bytes:
     ax_p = fig.add_subplot(gs[1, 0], sharex=ax_m)
     ax_n = fig.add_subplot(gs[:, 1])
     f, lp = res.freqs, res.loop
-    good = res.coherence >= MIN_COHERENCE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        good = (res.coherence >= MIN_COHERENCE) & (res.sigma_loop <= MAX_REL_ERROR * np.abs(res.loop))
     ph = np.degrees(np.unwrap(np.angle(lp)))
     ph -= 360.0 * np.round((ph[np.argmin(np.abs(np.abs(lp) - 1))] + 180) / 360.0) if len(ph) else 0.0
     label = "measured L" + ("" if res.linear else " (describing-function estimate)")
     ax_m.semilogx(f[good], _db(lp[good]), lw=1.2, label=label)
-    ax_m.semilogx(f[~good], _db(lp[~good]), ".", ms=2, color="0.6", label=f"coherence < {MIN_COHERENCE:g}")
+    ax_m.semilogx(f[~good], _db(lp[~good]), ".", ms=2, color="0.6",
+                  label=f"left out (coherence < {MIN_COHERENCE:g} or L uncertain > {100 * MAX_REL_ERROR:g} %)")
     ax_p.semilogx(f[good], ph[good], lw=1.2)
     if res.model_loop is not None:
         mp = np.degrees(np.unwrap(np.angle(res.model_loop)))

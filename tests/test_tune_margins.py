@@ -112,3 +112,21 @@ def test_batch_margins_are_margins_of() -> None:
         assert b["pm_deg"][i] == pytest.approx(m.pm_deg.value, abs=1e-9)
         assert b["ms"][i] == pytest.approx(m.ms.value, rel=1e-6)
         assert b["bandwidth_hz"][i] == pytest.approx(m.bandwidth_hz.value, rel=1e-9)
+
+
+def test_objective_tracking_picks_the_best_score_among_the_feasible() -> None:
+    from drivectl.machine.build import axis_profile
+    from drivectl.machine.config import load_config
+    from drivectl.tools.commissioning.tune_cost import DEFAULT_WEIGHT, Job, simulate
+    from drivectl.tools.commissioning.tune_margins import meets, parse_targets, tune_to_targets
+
+    cfg = load_config(None)
+    targets = parse_targets(TARGETS)
+    kw = {"controller": "pid", "candidates": 16, "corners": 4, "verify": False, "seconds": 0.5}
+    wide = tune_to_targets(cfg, "x", targets, **kw)
+    track = tune_to_targets(cfg, "x", targets, objective="tracking", **kw)
+    assert wide.tracking is None and track.tracking is not None and track.tracking.ok
+    assert all(all(meets(c, targets).values()) for c in track.corners)  # still every target on every corner
+    job = Job(cfg, "x", "pid", {}, 0.5, DEFAULT_WEIGHT)
+    # the widest-band gains are among those scored: the tracking pick is never worse on J
+    assert track.tracking.cost <= simulate(job, wide.best, axis_profile(cfg, "x")).cost + 1e-12

@@ -24,6 +24,9 @@ which removes the ramp; on a hold the reference is constant and nothing changes.
 The frequency response, its estimate and the mode: tools/commissioning/frf.py; the excitation and
 the held or travelled reference: tools/commissioning/bode_excitation.py.
 
+``--loop open`` takes the same run (:func:`excited_run`) to the open loop instead: the sensitivity from the
+recorded effort and the injected multisine, L, and the stability margins (tools/commissioning/margins.py).
+
 Library: :func:`measure_frf` -> :class:`BodeResult`, :func:`model_frf`, :func:`write_bode`. CLI:
 :func:`add_bode_parser` and :func:`cmd_bode`.
 """

@@ -333,8 +333,16 @@ def report(res: TargetResult) -> str:
     tgt = f"{'targets':<34}" + "".join(f" {(op + format(t[k], 'g')) if k in t else '':>{w}}" for k, op, w in cells)
     head = f"{'plant':<34} {'|gm| dB':>9} {'|pm| deg':>9} {'Ms':>7} {'bw Hz':>8}"
     out += ["", head, "-" * len(head), tgt]
+    # corners that differ only in what the linear loop does not see (a rigid axis's Coulomb levels) read
+    # the same: one row each, with how many alike
+    rows: dict[tuple, list[CornerMargins]] = {}
     for c in res.corners:
-        out.append(f"{c.name:<34} {abs(c.gm_db):>9.2f} {abs(c.pm_deg):>9.2f} {c.ms:>7.3f} {c.bandwidth_hz:>8.2f}"
+        key = (round(abs(c.gm_db), 2), round(abs(c.pm_deg), 2), round(c.ms, 3), round(c.bandwidth_hz, 2), c.stable)
+        rows.setdefault(key, []).append(c)
+    for same in rows.values():
+        c = same[0]
+        name = c.name + (f" (+{len(same) - 1} alike)" if len(same) > 1 else "")
+        out.append(f"{name:<34} {abs(c.gm_db):>9.2f} {abs(c.pm_deg):>9.2f} {c.ms:>7.3f} {c.bandwidth_hz:>8.2f}"
                    + ("" if c.stable else "  UNSTABLE"))
     m = res.measured
     if m is None:

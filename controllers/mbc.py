@@ -370,6 +370,19 @@ class Mbc(Controller):
         M[n_p, :] = -kf @ M[n_p + 1:, :]  # u = -K x^ + gd d^
         return M
 
+    def linear_form(self) -> Any:
+        """State [s(k|k-1), the net command sent last cycle] (before the step), the reference held and the
+        standstill not engaged (it engages only at rest on a Coulomb model); see
+        :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        na = self._n + 2
+        x, pos, vel = basis(na + 1)
+        s_next = self._Mp @ x[:na] + np.outer(self._Np[:, 0], pos) + np.outer(self._Np[:, 1], vel) \
+            + np.outer(self.d.G, x[na])
+        u = -(self._Kf @ s_next)
+        return from_rows([*s_next, u], u, self.dt)
+
     @property
     def disturbance_estimate(self) -> float:
         """The disturbance d the Kalman filter currently estimates (effort unit; see the module text)."""

@@ -83,6 +83,25 @@ class Pid(Controller):
     def step(self, reference: Reference, feedback: Feedback) -> Any:
         return self._pid(reference, feedback)
 
+    def _pid_rows(self, x: Any, pos: Any, vel: Any) -> tuple[Any, Any, Any]:
+        """The PID's step on rows over [state, position, velocity] (controllers/linear_form.py), the
+        reference held: (integral after the step, filtered e' after it, the PID term). Without the clamp
+        (``i_limit``): linear for deviations inside it."""
+        s = self.settings
+        integral = x[0] - self.dt * pos  # e = -position
+        d = (1.0 - self._d_alpha) * x[1] - self._d_alpha * vel  # e' = -velocity
+        return integral, d, s.ki * integral + s.kd * d - s.kp * pos
+
+    def linear_form(self) -> Any:
+        """State [integral, filtered e'] (before the step); see :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        if self.ops is not SCALAR_OPS:
+            return None  # a batch of gain sets has no single form
+        x, pos, vel = basis(2)
+        integral, d, u = self._pid_rows(x, pos, vel)
+        return from_rows([integral, d], u, self.dt)
+
 
 @dataclass
 class PidDobSettings(PidSettings):
@@ -150,6 +169,25 @@ class PidDob(Pid):
     def disturbance_estimate(self) -> Any:
         """The DOB's friction estimate g^, in the effort unit (N)."""
         return self.observer.g_hat
+
+    def linear_form(self) -> Any:
+        """State [integral, filtered e', v^, g^, f(k-1), ..., f(k-1-delay)] (before the step): the observer
+        of controllers/dob.py fed this law's own past efforts; see :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        if self.ops is not SCALAR_OPS:
+            return None
+        ob = self.observer
+        nd = ob.delay_cycles + 1
+        x, pos, vel = basis(4 + nd)
+        acting = x[4 + ob.delay_cycles]  # the command that moved the axis since the last sample
+        v_pred = x[2] + self.dt * (acting - x[3]) / ob.mass
+        innov = vel - v_pred
+        v_hat = v_pred + self.dt * ob.l1 * innov
+        g_hat = x[3] - self.dt * ob.l2 * innov
+        integral, d, u = self._pid_rows(x, pos, vel)
+        f = u + g_hat
+        return from_rows([integral, d, v_hat, g_hat, f, *x[4:4 + nd - 1]], f, self.dt)
 
     def step(self, reference: Reference, feedback: Feedback) -> Any:
         g_hat = self.observer.step(self.last_effort, feedback.velocity)

@@ -63,6 +63,7 @@ class WebConsole:
             Route("/api/status", self.api_status),
             Route("/api/jogs", self.api_jogs),
             Route("/api/traces", self.api_traces),
+            Route("/api/margins", self.api_margins),
             Route("/api/trace", self.api_trace),
             Route("/api/explain", self.api_explain, methods=["POST"]),
             Route("/files/{name:path}", self.files),
@@ -126,6 +127,12 @@ class WebConsole:
         if not self._authorized(request):
             return self._refused()
         return JSONResponse(traces.listing(self.console.out))
+
+    async def api_margins(self, request: Request) -> Response:
+        """The last `bode --loop open` figure and margins per axis in the output folder (the Axis page)."""
+        if not self._authorized(request):
+            return self._refused()
+        return JSONResponse(finite(traces.margin_figures(self.console.out)))
 
     async def api_trace(self, request: Request) -> Response:
         if not self._authorized(request):

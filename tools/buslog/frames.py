@@ -1,0 +1,397 @@
+"""A CAN log as chunks of arrays: (timestamp, COB-ID, length, data), read in bounded memory.
+
+Two readers give the same chunks (tests/test_buslog.py checks they are identical):
+
+- the reference: python-can's :class:`can.LogReader` (every suffix it reads), its Messages packed into arrays;
+- the fast path, for the text formats where LogReader is the bottleneck (candump ``.log``, Vector ``.asc`` in
+  hex): the text is cut into blocks of whole lines and parsed with numpy, never one Message per frame. A block
+  the fast parser does not recognise line for line (CAN FD, a decimal ``.asc``, an odd line) is handed to
+  python-can's own reader for that format, so nothing is guessed.
+
+A frame CANopen does not use here (extended or remote, an error frame, CAN FD) keeps its place with COB-ID
+-1: it is counted, never decoded. A log that ends early (a killed recorder) is read as far as it goes and
+:attr:`Reading.truncated` says where.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import numpy as np
+
+CHUNK_FRAMES = 65536
+_BLOCK_BYTES = 4 << 20
+#: hex digit value of each byte, -1 for a byte that is no hex digit
+_HEX = np.full(256, -1, np.int16)
+for _c in b"0123456789":
+    _HEX[_c] = _c - 48
+for _c in b"abcdef":
+    _HEX[_c] = _c - 87
+    _HEX[_c - 32] = _c - 87
+
+
+@dataclass(frozen=True)
+class Frames:
+    """One chunk of frames in log order."""
+
+    t: np.ndarray  # float64, s, as python-can reads the log's stamps
+    cob: np.ndarray  # int32 11-bit COB-ID; -1: a frame not read here (extended, remote, error, FD)
+    dlc: np.ndarray  # uint8 data length in bytes
+    data: np.ndarray  # uint8 (n, 8), zero past the length
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+@dataclass
+class Reading:
+    """What reading a log found: how many frames, by which reader, and whether it ended early."""
+
+    path: Path
+    reader: str = ""  # "numpy (candump .log)" / "python-can LogReader (.blf)" ...
+    frames: int = 0
+    truncated: str | None = None  # why the reading stopped before the log's end
+    notes: list[str] = field(default_factory=list)
+
+
+def _pack(t: list[float], cob: list[int], dlc: list[int], data: list[bytes]) -> Frames:
+    raw = np.frombuffer(b"".join(data), np.uint8).reshape(-1, 8) if data else np.zeros((0, 8), np.uint8)
+    return Frames(np.asarray(t, np.float64), np.asarray(cob, np.int32), np.asarray(dlc, np.uint8), raw)
+
+
+def messages_to_frames(messages: Iterator[can.Message], reading: Reading, chunk: int = CHUNK_FRAMES,
+                       ) -> Iterator[Frames]:
+    """Pack python-can Messages into chunks (the reference path, and the fast path's fallback)."""
+    t: list[float] = []
+    cob: list[int] = []
+    dlc: list[int] = []
+    data: list[bytes] = []
+    for msg in messages:
+        reading.frames += 1
+        t.append(msg.timestamp)
+        plain = not (msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id or msg.is_fd)
+        cob.append(msg.arbitration_id if plain else -1)
+        payload = bytes(msg.data or b"")[:8] if plain else b""
+        dlc.append(len(payload))
+        data.append(payload.ljust(8, b"\0"))
+        if len(t) >= chunk:
+            yield _pack(t, cob, dlc, data)
+            t, cob, dlc, data = [], [], [], []
+    if t:
+        yield _pack(t, cob, dlc, data)
+
+
+def _first_error_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
+def read_reference(path: Path, reading: Reading, progress: object = None) -> Iterator[Frames]:
+    """Chunks through python-can's LogReader (the reference reader, every suffix it knows)."""
+    reading.reader = f"python-can LogReader ({path.suffix.lower()})"
+    from drivectl.tools.buslog.convert import BusLogError
+
+    before = reading.frames
+    try:
+        with can.LogReader(str(path)) as reader:
+            for frames in messages_to_frames(iter(reader), reading):
+                if progress is not None:
+                    progress.update(len(frames))
+                yield frames
+    except Exception as exc:  # the readers raise their parsers' own errors on garbage or a cut-off file
+        if reading.frames == before:
+            raise BusLogError(f"{path}: not a readable {path.suffix} CAN log: {_first_error_line(exc)}") from None
+        reading.truncated = f"unreadable after frame {reading.frames} ({_first_error_line(exc)})"
+
+
+# -- the fast path: text formats parsed with numpy --------------------------------------------------------------
+def _lines(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(start, end) of each line of ``block`` (end excludes the newline and a carriage return)."""
+    nl = np.flatnonzero(block == 10)
+    starts = np.empty(len(nl), np.int64)
+    starts[0:1] = 0
+    starts[1:] = nl[:-1] + 1
+    ends = nl.copy()
+    cr = ends > starts
+    cr[cr] = block[ends[cr] - 1] == 13
+    ends[cr] -= 1
+    return starts, ends
+
+
+def _gather(block: np.ndarray, start: np.ndarray, width: int) -> np.ndarray:
+    """(n, width) bytes from each start (past the block's end: zeros)."""
+    idx = start[:, None] + np.arange(width)[None, :]
+    padded = np.concatenate([block, np.zeros(width, np.uint8)])
+    return padded[np.minimum(idx, len(padded) - 1)]
+
+
+def _floats(block: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray | None:
+    """The decimal numbers at (start, length), parsed as Python's float() does (numpy's string conversion)."""
+    if not len(start):
+        return np.zeros(0)
+    width = int(length.max())
+    if width > 32:
+        return None
+    chars = _gather(block, start, width)
+    chars[np.arange(width)[None, :] >= length[:, None]] = 0
+    ok = ((chars >= 48) & (chars <= 57)) | (chars == 46) | (chars == 0) | (chars == 45)
+    if not ok.all():
+        return None
+    return np.ascontiguousarray(chars).view(f"S{width}").ravel().astype(np.float64)
+
+
+def _hex(block: np.ndarray, start: np.ndarray, length: np.ndarray, width: int) -> np.ndarray | None:
+    """The hex numbers at (start, length <= width) as int64; None if a digit is no hex digit."""
+    digits = _HEX[_gather(block, start, width)].astype(np.int64)
+    inside = np.arange(width)[None, :] < length[:, None]
+    if (digits[inside] < 0).any():
+        return None
+    digits[~inside] = 0
+    shift = (length[:, None] - 1 - np.arange(width)[None, :]) * 4
+    return (digits << np.maximum(shift, 0) * inside).sum(axis=1)
+
+
+def _candump_block(block: np.ndarray) -> Frames | None:
+    """candump -L lines ``(stamp) iface ID#DATA [T|R]``; None where a line is not that (the caller falls back)."""
+    starts, ends = _lines(block)
+    keep = ends > starts
+    starts, ends = starts[keep], ends[keep]
+    n = len(starts)
+    if not n or (block[starts] != 40).any():
+        return None
+    close = np.flatnonzero(block == 41)
+    hashes = np.flatnonzero(block == 35)
+    spaces = np.flatnonzero(block == 32)
+    if len(close) != n or len(hashes) != n:
+        return None  # CAN FD (##), or a line of another shape
+    if (close > ends).any() or (close < starts).any() or (hashes > ends).any() or (hashes < close).any():
+        return None
+    t = _floats(block, starts + 1, close - starts - 1)
+    if t is None:
+        return None
+    id_space = spaces[np.searchsorted(spaces, hashes) - 1]  # the space before the ID
+    if (id_space <= close).any():
+        return None
+    id_len = hashes - id_space - 1
+    nxt = np.searchsorted(spaces, hashes)
+    after = np.where(nxt < len(spaces), spaces[np.minimum(nxt, len(spaces) - 1)], ends)
+    data_end = np.minimum(after, ends)
+    data_len = data_end - hashes - 1
+    if (id_len < 1).any() or (id_len > 8).any() or (data_len < 0).any():
+        return None
+    cob = _hex(block, id_space + 1, id_len, 8)
+    if cob is None:
+        return None
+    remote = (data_len > 0) & ((block[np.minimum(hashes + 1, len(block) - 1)] | 32) == ord("r"))
+    plain_len = np.where(remote, 0, data_len)
+    if ((plain_len % 2) | (plain_len > 16)).any():
+        return None
+    chars = _HEX[_gather(block, hashes + 1, 16)]
+    nib = np.arange(16)[None, :] < plain_len[:, None]
+    if (chars[nib] < 0).any():
+        return None
+    chars = np.where(nib, chars, 0).astype(np.uint8)
+    data = (chars[:, 0::2] << 4) | chars[:, 1::2]
+    cob = np.where((id_len > 3) | remote, -1, cob).astype(np.int32)
+    return Frames(t, cob, (plain_len // 2).astype(np.uint8), data)
+
+
+def _asc_block(block: np.ndarray) -> Frames | None:
+    """Vector ASC lines in hex, ``stamp channel ID Rx|Tx d DLC b0 .. b7``; header and event lines python-can's
+    reader skips are skipped; None where a line might be a frame of another shape (the caller falls back)."""
+    starts, ends = _lines(block)
+    ws = (block == 32) | (block == 9) | (block == 10) | (block == 13)
+    prev = np.concatenate([[True], ws[:-1]])
+    tok_start = np.flatnonzero(~ws & prev)
+    nxt = np.concatenate([ws[1:], [True]])
+    tok_end = np.flatnonzero(~ws & nxt) + 1
+    line_of = np.searchsorted(ends, tok_start)  # tokens never cross a line end
+    first = np.searchsorted(line_of, np.arange(len(starts)))
+    count = np.searchsorted(line_of, np.arange(len(starts)), side="right") - first
+    has = count >= 6
+    cand = np.flatnonzero(has)
+    f = first[cand]
+    tl = tok_end - tok_start
+
+    def tok(k: int) -> tuple[np.ndarray, np.ndarray]:
+        return tok_start[f + k], tl[f + k]
+
+    # a frame line: a number, a channel (digits), an ID, Rx/Tx, d, a DLC
+    s0, l0 = tok(0)
+    s1, l1 = tok(1)
+    s3, l3 = tok(3)
+    s4, l4 = tok(4)
+    c0 = block[s0]
+    numeric = (c0 >= 48) & (c0 <= 57)
+    chan_digit = (block[s1] >= 48) & (block[s1] <= 57) & (l1 <= 3)
+    rxtx = (l3 == 2) & (((block[s3] | 32) == ord("r")) | ((block[s3] | 32) == ord("t"))) & \
+        ((block[np.minimum(s3 + 1, len(block) - 1)] | 32) == ord("x"))
+    d = (l4 == 1) & ((block[s4] | 32) == ord("d"))
+    frame = numeric & chan_digit & rxtx & d
+    # a numbered line on a channel that is no data frame we parse (remote 'r', an error frame, FD): fall back
+    if (numeric & chan_digit & ~frame).any():
+        return None
+    cand, f = cand[frame], f[frame]
+    short = np.flatnonzero(~has & (count >= 3))
+    if len(short):  # "t 1 ErrorFrame" and the like: python-can's reader makes frames of them
+        fs = first[short]
+        c, chan = block[tok_start[fs]], block[tok_start[fs + 1]]
+        if (((c >= 48) & (c <= 57)) & ((chan >= 48) & (chan <= 57))).any():
+            return None
+    n = len(cand)
+    s0, l0 = tok(0)
+    t = _floats(block, s0, l0)
+    if t is None:
+        return None
+    s2, l2 = tok(2)
+    ext = block[s2 + l2 - 1] | 32 == ord("x")
+    id_len = np.where(ext, l2 - 1, l2)
+    if (id_len > 8).any():
+        return None
+    cob = _hex(block, s2, id_len, 8)
+    s5, l5 = tok(5)
+    if cob is None or (l5 != 1).any():
+        return None
+    dlc = _HEX[block[s5]].astype(np.int64)
+    if (dlc < 0).any() or (dlc > 8).any() or (count[cand] < 6 + dlc).any():
+        return None
+    data = np.zeros((n, 8), np.uint8)
+    for k in range(8):
+        rows = np.flatnonzero(dlc > k)
+        if not len(rows):
+            break
+        sk, lk = tok_start[f[rows] + 6 + k], tl[f[rows] + 6 + k]
+        if (lk != 2).any():
+            return None
+        v = _hex(block, sk, lk, 2)
+        if v is None:
+            return None
+        data[rows, k] = v
+    cob = np.where(ext, -1, cob).astype(np.int32)
+    return Frames(t, cob, dlc.astype(np.uint8), data)
+
+
+def _split(frames: Frames, chunk: int) -> Iterator[Frames]:
+    for i in range(0, len(frames), chunk):
+        yield Frames(frames.t[i : i + chunk], frames.cob[i : i + chunk], frames.dlc[i : i + chunk],
+                     frames.data[i : i + chunk])
+
+
+def _asc_header(path: Path) -> tuple[bytes, int, bool]:
+    """(the header lines, their length in bytes, whether the fast path reads this .asc: base hex)."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    lines = head.splitlines(keepends=True)
+    out, hex_base = b"", True
+    for line in lines:
+        low = line.strip().lower()
+        if low.startswith(b"base"):
+            hex_base = low.split()[1:2] == [b"hex"]
+        if low and (low[:1].isdigit()):
+            break
+        out += line
+        if low.startswith(b"begin triggerblock"):
+            break
+    return out, len(out), hex_base
+
+
+def read_fast(path: Path, reading: Reading, progress: object = None) -> Iterator[Frames]:
+    """Chunks of a candump .log or a hex .asc parsed with numpy (see the module docstring)."""
+    from drivectl.tools.buslog.convert import BusLogError
+
+    asc = path.suffix.lower() == ".asc"
+    reading.reader = f"numpy ({'Vector .asc' if asc else 'candump .log'})"
+    header, skip, _ = _asc_header(path) if asc else (b"", 0, True)
+    parse = _asc_block if asc else _candump_block
+    reader_cls = can.ASCReader if asc else can.CanutilsLogReader
+    fallback_blocks = 0
+    tail_ok = not asc
+    with open(path, "rb") as f:
+        f.seek(skip)
+        rest = b""
+        while True:
+            raw = f.read(_BLOCK_BYTES)
+            if progress is not None:
+                progress.update(len(raw))
+            if not raw:
+                text = rest
+                rest = b""
+            else:
+                text = rest + raw
+                cut = text.rfind(b"\n") + 1
+                text, rest = text[:cut], text[cut:]
+                if not text:
+                    continue
+            if not text:
+                break
+            if not text.endswith(b"\n"):
+                text += b"\n"  # the last line of a log written without a final newline
+                last_unterminated = True
+            else:
+                last_unterminated = False
+            if asc and b"end triggerblock" in text[-64:].lower():
+                tail_ok = True
+            block = np.frombuffer(text, np.uint8)
+            frames = parse(block)
+            if frames is None:
+                # python-can's own reader for this block (it needs the .asc header for base and stamps)
+                fallback_blocks += 1
+                before = reading.frames
+                try:
+                    src = io.StringIO((header + text).decode("utf-8", "replace")) if asc else \
+                        io.StringIO(text.decode("utf-8", "replace"))
+                    got = list(messages_to_frames(iter(reader_cls(src)), reading, chunk=1 << 30))
+                except Exception as exc:
+                    if not reading.frames and not before:
+                        raise BusLogError(f"{path}: not a readable {path.suffix} CAN log: "
+                                          f"{_first_error_line(exc)}") from None
+                    reading.truncated = f"unreadable after frame {reading.frames} ({_first_error_line(exc)})"
+                    return
+                for fr in got:
+                    yield from _split(fr, CHUNK_FRAMES)
+            else:
+                reading.frames += len(frames)
+                yield from _split(frames, CHUNK_FRAMES)
+            if last_unterminated and raw == b"":
+                reading.truncated = f"the last line has no end (cut off after frame {reading.frames})"
+            if not raw:
+                break
+    if fallback_blocks:
+        reading.notes.append(f"{fallback_blocks} block(s) read by python-can's reader (lines the fast parser "
+                             "does not take)")
+    if asc and not tail_ok and reading.frames:
+        reading.truncated = f"no 'End TriggerBlock' (the recorder did not close the log; {reading.frames} frames)"
+
+
+def fast_path_reads(path: Path) -> bool:
+    """Whether :func:`read_fast` reads this log (a candump .log; a .asc in hex)."""
+    suffix = path.suffix.lower()
+    if suffix == ".log":
+        with open(path, "rb") as f:
+            first = f.read(1).lstrip()
+        return first in (b"(", b"")
+    if suffix == ".asc":
+        return _asc_header(path)[2]
+    return False
+
+
+def read_frames(path: Path, reading: Reading, *, fast: bool | None = None, progress: bool = False,
+                ) -> Iterator[Frames]:
+    """The frames of the log at ``path`` in chunks. ``fast``: None picks the numpy reader where it reads the
+    format, True insists (where it cannot, the reference), False is python-can's LogReader. ``progress``: a
+    tqdm bar on stderr (where stderr is a terminal)."""
+    from tqdm import tqdm
+
+    use_fast = fast is not False and fast_path_reads(path)
+    size = os.path.getsize(path)
+    bar = tqdm(total=size if use_fast else None, unit="B" if use_fast else " frames", unit_scale=True,
+               desc=path.name, leave=False, disable=None if progress else True)
+    try:
+        gen = read_fast(path, reading, bar) if use_fast else read_reference(path, reading, bar)
+        yield from gen
+    finally:
+        bar.close()

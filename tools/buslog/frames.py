@@ -124,9 +124,9 @@ def _lines(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _gather(block: np.ndarray, start: np.ndarray, width: int) -> np.ndarray:
     """(n, width) bytes from each start (past the block's end: zeros)."""
-    idx = start[:, None] + np.arange(width)[None, :]
     padded = np.concatenate([block, np.zeros(width, np.uint8)])
-    return padded[np.minimum(idx, len(padded) - 1)]
+    rows = np.lib.stride_tricks.as_strided(padded, shape=(len(block) + 1, width), strides=(1, 1), writeable=False)
+    return rows[np.minimum(start, len(block))]  # whole rows copied, not byte by byte
 
 
 def _floats(block: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray | None:
@@ -156,48 +156,72 @@ def _hex(block: np.ndarray, start: np.ndarray, length: np.ndarray, width: int) -
 
 
 def _candump_block(block: np.ndarray) -> Frames | None:
-    """candump -L lines ``(stamp) iface ID#DATA [T|R]``; None where a line is not that (the caller falls back)."""
+    """candump -L lines ``(stamp) iface ID#DATA [T|R]``; None where a line is not that (the caller falls back).
+
+    A log has a handful of line shapes (one per ID length and data length), and lines of one length have their
+    fields at the same columns: the lines of each length are gathered into one byte matrix, the columns of the
+    first line's fields checked on every line, and each field parsed a column at a time."""
     starts, ends = _lines(block)
-    keep = ends > starts
-    starts, ends = starts[keep], ends[keep]
+    length = ends - starts
+    keep = length > 0
+    starts, length = starts[keep], length[keep]
     n = len(starts)
-    if not n or (block[starts] != 40).any():
+    if not n:
         return None
-    close = np.flatnonzero(block == 41)
-    hashes = np.flatnonzero(block == 35)
-    spaces = np.flatnonzero(block == 32)
-    if len(close) != n or len(hashes) != n:
-        return None  # CAN FD (##), or a line of another shape
-    if (close > ends).any() or (close < starts).any() or (hashes > ends).any() or (hashes < close).any():
-        return None
-    t = _floats(block, starts + 1, close - starts - 1)
-    if t is None:
-        return None
-    id_space = spaces[np.searchsorted(spaces, hashes) - 1]  # the space before the ID
-    if (id_space <= close).any():
-        return None
-    id_len = hashes - id_space - 1
-    nxt = np.searchsorted(spaces, hashes)
-    after = np.where(nxt < len(spaces), spaces[np.minimum(nxt, len(spaces) - 1)], ends)
-    data_end = np.minimum(after, ends)
-    data_len = data_end - hashes - 1
-    if (id_len < 1).any() or (id_len > 8).any() or (data_len < 0).any():
-        return None
-    cob = _hex(block, id_space + 1, id_len, 8)
-    if cob is None:
-        return None
-    remote = (data_len > 0) & ((block[np.minimum(hashes + 1, len(block) - 1)] | 32) == ord("r"))
-    plain_len = np.where(remote, 0, data_len)
-    if ((plain_len % 2) | (plain_len > 16)).any():
-        return None
-    chars = _HEX[_gather(block, hashes + 1, 16)]
-    nib = np.arange(16)[None, :] < plain_len[:, None]
-    if (chars[nib] < 0).any():
-        return None
-    chars = np.where(nib, chars, 0).astype(np.uint8)
-    data = (chars[:, 0::2] << 4) | chars[:, 1::2]
-    cob = np.where((id_len > 3) | remote, -1, cob).astype(np.int32)
-    return Frames(t, cob, (plain_len // 2).astype(np.uint8), data)
+    t = np.empty(n)
+    cob = np.empty(n, np.int64)
+    dlc = np.zeros(n, np.uint8)
+    data = np.zeros((n, 8), np.uint8)
+    order = np.argsort(length, kind="stable")
+    bounds = np.flatnonzero(np.diff(length[order])) + 1
+    for rows in np.split(order, bounds):
+        width = int(length[rows[0]])
+        if width > 96 or width < 8:
+            return None
+        if int(starts[rows[-1]]) + width > len(block):
+            return None
+        # a row of ``width`` bytes from each start: rows copied whole, not byte by byte
+        m = np.lib.stride_tricks.as_strided(block, shape=(len(block) - width + 1, width), strides=(1, 1),
+                                            writeable=False)[starts[rows]]
+        first = m[0].tobytes()
+        c, h = first.find(b")"), first.find(b"#")
+        d = first.find(b".", 0, c)
+        s = first.rfind(b" ", 0, h)
+        e = first.find(b" ", h)
+        e = width if e < 0 else e
+        if min(c, h, d, s) < 1 or not d < c < s < h or first[0] != 40:
+            return None
+        fixed = [(0, 40), (c, 41), (d, 46), (h, 35), (s, 32)] + ([(e, 32)] if e < width else [])
+        if any((m[:, col] != ch).any() for col, ch in fixed):
+            return None
+        if (m[:, h + 1 : e] == 35).any():
+            return None  # CAN FD (##)
+        digits = np.concatenate([m[:, 1:d], m[:, d + 1 : c]], axis=1).astype(np.int64) - 48
+        if ((digits < 0) | (digits > 9)).any() or digits.shape[1] > 16:
+            return None
+        weights = 10 ** np.arange(digits.shape[1] - 1, -1, -1, dtype=np.int64)
+        # an exact integer over an exact power of ten: IEEE division rounds it as float() rounds the text
+        t[rows] = (digits @ weights) / float(10 ** (c - d - 1))
+        nid = h - s - 1
+        idn = _HEX[m[:, s + 1 : h]].astype(np.int64)
+        if (idn < 0).any() or not 1 <= nid <= 8:
+            return None
+        cob[rows] = idn @ (16 ** np.arange(nid - 1, -1, -1, dtype=np.int64)) if nid <= 3 else -1
+        nd = e - h - 1
+        if nd > 0 and (m[:, h + 1] | 32 == ord("r")).any():
+            if not (m[:, h + 1] | 32 == ord("r")).all():
+                return None
+            cob[rows] = -1  # remote frames
+            continue
+        if nd % 2 or nd > 16:
+            return None
+        nib = _HEX[m[:, h + 1 : e]]
+        if (nib < 0).any():
+            return None
+        nib = nib.astype(np.uint8)
+        data[rows, : nd // 2] = (nib[:, 0::2] << 4) | nib[:, 1::2]
+        dlc[rows] = nd // 2
+    return Frames(t, cob.astype(np.int32), dlc, data)
 
 
 def _asc_block(block: np.ndarray) -> Frames | None:

@@ -5,8 +5,9 @@ The log is made here, in a temporary folder: the bring-up of the embedded three-
 PDO's configuration), then ``--seconds`` of cyclic traffic at 1 kHz generated in the same candump format: per
 cycle a SYNC and, for each of the three nodes, the compact mapping the bring-up configured (three axes at
 1 kHz do not fit the full one under the bus-load ceiling): TPDO1 (statusword + position + torque actual) and
-RPDO1 (controlword + target torque), the position a sine: 7 frames a cycle, 4.2 M frames in 10 minutes. ``drivectl trace --from-log`` of axis x is then run on it in a fresh process (wall time and peak RSS
-of that process: ru_maxrss), and the trace's rows are checked against the cycles generated.
+RPDO1 (controlword + target torque), the position a sine: 7 frames a cycle, 4.2 M frames in 10 minutes.
+``drivectl trace --from-log`` of axis x is then run on it in a fresh process (wall time after the imports, and
+peak RSS of that process: ru_maxrss), and the trace's rows are checked against the cycles generated.
 
 The table also measures each reader alone on the first ``--reader-frames`` frames of the same traffic written
 in every format python-can writes (python-can's LogReader, and the numpy reader where it reads the format),
@@ -37,8 +38,8 @@ CHUNK_CYCLES = 20000
 CHILD = """
 import contextlib, io, resource, sys, time
 from pathlib import Path
-t0 = time.perf_counter()
 from drivectl.tools.buslog import log_to_trace
+t0 = time.perf_counter()
 path = log_to_trace(Path(sys.argv[1]), axis="x", out_dir=Path(sys.argv[2]))
 dt = time.perf_counter() - t0
 from drivectl.tracefile.format import Trace

@@ -90,22 +90,38 @@ def _first_error_line(exc: BaseException) -> str:
     return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
-def read_reference(path: Path, reading: Reading, progress: object = None) -> Iterator[Frames]:
-    """Chunks through python-can's LogReader (the reference reader, every suffix it knows)."""
-    reading.reader = f"python-can LogReader ({path.suffix.lower()})"
+def _guarded(messages: Iterator[can.Message], reading: Reading, path: Path) -> Iterator[can.Message]:
+    """``messages`` until the reader fails: a failure after the first frame is a truncated log (the frames before
+    it are kept and :attr:`Reading.truncated` says where), before it a file that is no log (one line)."""
     from drivectl.tools.buslog.convert import BusLogError
 
     before = reading.frames
     try:
-        with can.LogReader(str(path)) as reader:
-            for frames in messages_to_frames(iter(reader), reading):
-                if progress is not None:
-                    progress.update(len(frames))
-                yield frames
+        yield from messages
     except Exception as exc:  # the readers raise their parsers' own errors on garbage or a cut-off file
-        if reading.frames == before:
+        if reading.frames == before == 0:
             raise BusLogError(f"{path}: not a readable {path.suffix} CAN log: {_first_error_line(exc)}") from None
         reading.truncated = f"unreadable after frame {reading.frames} ({_first_error_line(exc)})"
+
+
+def read_reference(path: Path, reading: Reading, progress: object = None) -> Iterator[Frames]:
+    """Chunks through python-can's LogReader (the reference reader, every suffix it knows)."""
+    from drivectl.tools.buslog.convert import BusLogError
+
+    reading.reader = f"python-can LogReader ({path.suffix.lower()})"
+    try:
+        reader = can.LogReader(str(path))
+    except Exception as exc:
+        raise BusLogError(f"{path}: not a readable {path.suffix} CAN log: {_first_error_line(exc)}") from None
+    with reader:
+        for frames in messages_to_frames(_guarded(iter(reader), reading, path), reading):
+            if progress is not None:
+                progress.update(len(frames))
+            yield frames
+        header_size = getattr(reader, "file_size", None)  # a BLF's header, written when the recorder closes it
+        if isinstance(reader, can.BLFReader) and header_size != os.path.getsize(path) and not reading.truncated:
+            reading.truncated = (f"the BLF header gives {header_size} bytes, the file has {os.path.getsize(path)} "
+                                 f"(a recorder that did not close it; {reading.frames} frames read)")
 
 
 # -- the fast path: text formats parsed with numpy --------------------------------------------------------------
@@ -364,19 +380,17 @@ def read_fast(path: Path, reading: Reading, progress: object = None) -> Iterator
             if frames is None:
                 # python-can's own reader for this block (it needs the .asc header for base and stamps)
                 fallback_blocks += 1
-                before = reading.frames
+                src = io.StringIO((header + text).decode("utf-8", "replace")) if asc else \
+                    io.StringIO(text.decode("utf-8", "replace"))
                 try:
-                    src = io.StringIO((header + text).decode("utf-8", "replace")) if asc else \
-                        io.StringIO(text.decode("utf-8", "replace"))
-                    got = list(messages_to_frames(iter(reader_cls(src)), reading, chunk=1 << 30))
-                except Exception as exc:
-                    if not reading.frames and not before:
-                        raise BusLogError(f"{path}: not a readable {path.suffix} CAN log: "
-                                          f"{_first_error_line(exc)}") from None
-                    reading.truncated = f"unreadable after frame {reading.frames} ({_first_error_line(exc)})"
-                    return
+                    msgs = iter(reader_cls(src))
+                    got = list(messages_to_frames(_guarded(msgs, reading, path), reading, chunk=1 << 30))
+                except BusLogError:
+                    raise
                 for fr in got:
                     yield from _split(fr, CHUNK_FRAMES)
+                if reading.truncated:
+                    return
             else:
                 reading.frames += len(frames)
                 yield from _split(frames, CHUNK_FRAMES)

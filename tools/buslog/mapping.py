@@ -42,7 +42,8 @@ class PdoConfig:
     trans_type: int
     count: int
     words: dict[int, int] = field(default_factory=dict)  # sub-index -> index << 16 | sub << 8 | bits
-    source: str = "configuration"  # "log", "configuration" or "EDS defaults"
+    source: str = "configuration"  # where the mapping words came from: "log", "configuration" or "EDS defaults"
+    comm_source: str = "configuration"  # where the COB-ID and transmission type came from
 
     @property
     def name(self) -> str:
@@ -111,7 +112,7 @@ class NodeMapping:
             count = object_value(mp.subindices.get(0)) or 0
             words = {k: object_value(mp.subindices.get(k)) or 0 for k in range(1, count + 1)}
             self.pdos[(s.rx, s.n)] = PdoConfig(s.rx, s.n, s.cob_id, 255 if ttype is None else ttype, count, words,
-                                               "EDS defaults")
+                                               "EDS defaults", "EDS defaults")
 
     # -- the log's writes ----------------------------------------------------------------------------------
     def write(self, index: int, sub: int, value: bytes) -> bool:
@@ -132,13 +133,15 @@ class NodeMapping:
                 pdo.count = v
             else:
                 pdo.words[sub] = v
-        elif sub == 1:
-            pdo.cob_id = v
-        elif sub == 2:
-            pdo.trans_type = v
+            pdo.source = "log"
+        elif sub in (1, 2):
+            if sub == 1:
+                pdo.cob_id = v
+            else:
+                pdo.trans_type = v
+            pdo.comm_source = "log"
         else:
             return False
-        pdo.source = "log"
         self.version += 1
         self._active = None
         return True
@@ -171,8 +174,8 @@ class NodeMapping:
         if from_log and not rest:
             return f"the log's own PDO configuration SDO writes ({', '.join(from_log)})"
         if from_log:
-            return (f"the log's own PDO configuration SDO writes ({', '.join(from_log)}); {', '.join(rest)} from "
-                    f"{self._base_label}")
+            return (f"the log's own PDO configuration SDO writes ({', '.join(from_log)}); the mapping of "
+                    f"{', '.join(rest)} from {self._base_label}")
         return f"{self._base_label}: the log carries no PDO configuration writes for node {self.node}"
 
     def describe(self) -> list[str]:
@@ -180,5 +183,7 @@ class NodeMapping:
         out = []
         for a in self.active():
             objs = " + ".join(f"0x{i:04X}" + (f" {names[i]}" if i in names else "") for i, _ in a.layout.entries)
-            out.append(f"{a.config.name} COB-ID 0x{a.cob:03X} type {a.config.trans_type} ({a.config.source}): {objs}")
+            c = a.config
+            where = c.source if c.source == c.comm_source else f"mapping: {c.source}, COB-ID and type: {c.comm_source}"
+            out.append(f"{c.name} COB-ID 0x{a.cob:03X} type {c.trans_type} ({where}): {objs}")
         return out

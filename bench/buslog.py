@@ -39,13 +39,16 @@ CHILD = """
 import contextlib, io, resource, sys, time
 from pathlib import Path
 from drivectl.tools.buslog import log_to_trace
-t0 = time.perf_counter()
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+t0, c0 = time.perf_counter(), cpu()
 path = log_to_trace(Path(sys.argv[1]), axis="x", out_dir=Path(sys.argv[2]))
-dt = time.perf_counter() - t0
+dt, dc = time.perf_counter() - t0, cpu() - c0
 from drivectl.tracefile.format import Trace
 tr = Trace.read(path, columns=("lost",))
-print(dt, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, len(tr), tr.meta["frames"], tr.meta["lost_rows"],
-      tr.meta["mapping_source"].split(" (")[0].replace(" ", "_"))
+print(dt, dc, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, len(tr), tr.meta["frames"],
+      tr.meta["lost_rows"], tr.meta["mapping_source"].split(" (")[0].replace(" ", "_"))
 """
 
 
@@ -145,9 +148,9 @@ def convert(path: Path, work: Path) -> dict:
                          capture_output=True, text=True)
     if res.returncode:
         raise SystemExit(f"bench/buslog.py: the conversion failed: {res.stderr.strip().splitlines()[-1]}")
-    dt, rss, rows, frames, lost, source = res.stdout.split()
-    return {"seconds": float(dt), "peak_rss_mb": float(rss), "rows": int(rows), "frames": int(frames),
-            "lost": int(lost), "source": source}
+    dt, dc, rss, rows, frames, lost, source = res.stdout.split()
+    return {"seconds": float(dt), "cpu_s": float(dc), "peak_rss_mb": float(rss), "rows": int(rows),
+            "frames": int(frames), "lost": int(lost), "source": source}
 
 
 def readers(path: Path, work: Path, n: int) -> list[tuple[str, str, float]]:
@@ -172,10 +175,10 @@ def readers(path: Path, work: Path, n: int) -> list[tuple[str, str, float]]:
             if fast and not fast_path_reads(p):
                 continue
             reading = Reading(p)
-            t = time.perf_counter()
+            t = time.process_time()  # CPU time: the machine's load does not count
             for _ in read_frames(p, reading, fast=fast):
                 pass
-            dt = time.perf_counter() - t
+            dt = time.process_time() - t
             out.append((suffix, reading.reader, reading.frames / dt))
     return out
 
@@ -202,11 +205,13 @@ def main() -> int:
         print(f"{'what':<44}{'value':>14}")
         print(f"{'conversion, axis x (s)':<44}{res['seconds']:>14.2f}")
         print(f"{'frames/s (target >= 300000)':<44}{rate:>14.0f}")
+        print(f"{'CPU s of the conversion (both threads)':<44}{res['cpu_s']:>14.2f}")
+        print(f"{'frames per CPU s (the load-independent rate)':<44}{frames / res['cpu_s']:>14.0f}")
         print(f"{'peak RSS MB (target < 300)':<44}{res['peak_rss_mb']:>14.1f}")
         print(f"{'rows (one per SYNC), lost':<44}{res['rows']:>8} {res['lost']:>5}")
         print(f"{'mapping from':<44}{res['source']:>14}")
         print()
-        print(f"readers alone, first {args.reader_frames} frames:")
+        print(f"readers alone, first {args.reader_frames} frames (frames per CPU second):")
         print(f"{'format':<8}{'reader':<36}{'frames/s':>12}")
         for suffix, reader, fps in readers(path, work, args.reader_frames):
             print(f"{suffix:<8}{reader:<36}{fps:>12.0f}")

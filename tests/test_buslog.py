@@ -28,7 +28,7 @@ def _aligned(from_log: Trace, run: Trace, resolution: float, effort_q: float) ->
     return ok
 
 
-@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log"])
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".log", ".trc", ".csv"])
 def test_own_bus_log_converts_to_the_runs_trace(tmp_path: Path, suffix: str, capsys) -> None:
     log = tmp_path / f"x{suffix}"
     run_dir, conv_dir = tmp_path / "run", tmp_path / "conv"
@@ -505,7 +505,7 @@ def test_explain_on_a_log_names_the_effect_hidden_in_the_emulated_plant(tmp_path
     import json
 
     log = tmp_path / "machine.blf"
-    assert main(["trace", "--axis", "x", "--effect", "viscous:scale=0.47", "--duration", "2", "--no-plot", "--quiet",
+    assert main(["trace", "--axis", "x", "--effect", "viscous:scale=0.47", "--duration", "1.2", "--no-plot", "--quiet",
                  "--bus-log", str(log), "--out", str(tmp_path / "run")]) == 0
     capsys.readouterr()
     assert main(["explain", str(log), "--axis", "x", "--plant", "rigid-x", "--quiet", "--json",

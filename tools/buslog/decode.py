@@ -29,6 +29,7 @@ from drivectl.driver.cia301 import (
     NmtCommand,
     NmtState,
 )
+from drivectl.driver.pdo_plan import OBJECT_NAMES
 from drivectl.tools.buslog.convert import BusLogError, check_log, load_od
 from drivectl.tools.buslog.sdo import Transfer
 
@@ -150,13 +151,14 @@ class _Decoder:
                 self.pdo_frames += len(idx)
                 rec = np.ascontiguousarray(fr.data[idx, :size]).view(pdo.dtype).ravel()
                 t = fr.t[idx]
-                names = [f"0x{i:04X}" for i, _ in pdo.layout.entries]
+                names = [f"0x{i:04X}" + (f" {OBJECT_NAMES[i]}" if i in OBJECT_NAMES else "")
+                         for i, _ in pdo.layout.entries]
                 if (cia402.STATUSWORD, 0) in pdo.layout.entries:
                     sw = rec[f"f{pdo.layout.entries.index((cia402.STATUSWORD, 0))}"]
                     self._power(t, sw)
                 if self.every:
                     for k in range(len(idx)):
-                        vals = " ".join(f"{n}={int(rec[k][j])}" for j, n in enumerate(names))
+                        vals = ", ".join(f"{n} {int(rec[k][j])}" for j, n in enumerate(names))
                         self.lines.append((float(t[k]), f"{name} 0x{pdo.cob:03X}: {vals}"))
                     continue
                 sec = np.floor(t - (self.t0 or 0.0)).astype(np.int64)
@@ -189,7 +191,7 @@ class _Decoder:
         done = [k for k in self.seconds if upto is None or (self.t0 or 0.0) + k[1] + 1 <= upto]
         for key in done:
             count, lo, hi, names, cob = self.seconds.pop(key)
-            span = " ".join(f"{n} {a}" + (f"..{b}" if b != a else "") for n, a, b in zip(names, lo, hi, strict=True))
+            span = ", ".join(f"{n} {a}" + (f"..{b}" if b != a else "") for n, a, b in zip(names, lo, hi, strict=True))
             self.lines.append(((self.t0 or 0.0) + key[1] + 1 - 1e-9,
                                f"{key[0]} 0x{cob:03X}: {count} frames in second {key[1]}: {span}"))
         self.lines.sort(key=lambda x: x[0])

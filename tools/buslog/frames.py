@@ -138,37 +138,26 @@ def _lines(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return starts, ends
 
 
-def _gather(block: np.ndarray, start: np.ndarray, width: int) -> np.ndarray:
-    """(n, width) bytes from each start (past the block's end: zeros)."""
-    padded = np.concatenate([block, np.zeros(width, np.uint8)])
-    rows = np.lib.stride_tricks.as_strided(padded, shape=(len(block) + 1, width), strides=(1, 1), writeable=False)
-    return rows[np.minimum(start, len(block))]  # whole rows copied, not byte by byte
-
-
-def _floats(block: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray | None:
-    """The decimal numbers at (start, length), parsed as Python's float() does (numpy's string conversion)."""
-    if not len(start):
-        return np.zeros(0)
-    width = int(length.max())
-    if width > 32:
+def _rows(block: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray | None:
+    """(n, width) bytes from each start, rows copied whole (None where a row would run past the block)."""
+    if int(starts.max()) + width > len(block):
         return None
-    chars = _gather(block, start, width)
-    chars[np.arange(width)[None, :] >= length[:, None]] = 0
-    ok = ((chars >= 48) & (chars <= 57)) | (chars == 46) | (chars == 0) | (chars == 45)
-    if not ok.all():
-        return None
-    return np.ascontiguousarray(chars).view(f"S{width}").ravel().astype(np.float64)
+    return np.lib.stride_tricks.as_strided(block, shape=(len(block) - width + 1, width), strides=(1, 1),
+                                           writeable=False)[starts]
 
 
-def _hex(block: np.ndarray, start: np.ndarray, length: np.ndarray, width: int) -> np.ndarray | None:
-    """The hex numbers at (start, length <= width) as int64; None if a digit is no hex digit."""
-    digits = _HEX[_gather(block, start, width)].astype(np.int64)
-    inside = np.arange(width)[None, :] < length[:, None]
-    if (digits[inside] < 0).any():
+def _decimal(m: np.ndarray, a: int, b: int) -> np.ndarray | None:
+    """The decimal numbers ``d+.d+`` in columns a..b of every row, as Python's float() reads them: an exact
+    integer over an exact power of ten (IEEE division rounds it once, as float() rounds the text)."""
+    first = m[0, a:b].tobytes()
+    dot = first.find(b".")
+    if dot < 1 or dot == len(first) - 1 or b - a - 1 > 16 or (m[:, a + dot] != 46).any():
         return None
-    digits[~inside] = 0
-    shift = (length[:, None] - 1 - np.arange(width)[None, :]) * 4
-    return (digits << np.maximum(shift, 0) * inside).sum(axis=1)
+    digits = np.concatenate([m[:, a : a + dot], m[:, a + dot + 1 : b]], axis=1).astype(np.int64) - 48
+    if ((digits < 0) | (digits > 9)).any():
+        return None
+    weights = 10 ** np.arange(digits.shape[1] - 1, -1, -1, dtype=np.int64)
+    return (digits @ weights) / float(10 ** (b - a - dot - 1))
 
 
 def _candump_block(block: np.ndarray) -> Frames | None:
@@ -194,11 +183,9 @@ def _candump_block(block: np.ndarray) -> Frames | None:
         width = int(length[rows[0]])
         if width > 96 or width < 8:
             return None
-        if int(starts[rows[-1]]) + width > len(block):
+        m = _rows(block, starts[rows], width)
+        if m is None:
             return None
-        # a row of ``width`` bytes from each start: rows copied whole, not byte by byte
-        m = np.lib.stride_tricks.as_strided(block, shape=(len(block) - width + 1, width), strides=(1, 1),
-                                            writeable=False)[starts[rows]]
         first = m[0].tobytes()
         c, h = first.find(b")"), first.find(b"#")
         d = first.find(b".", 0, c)
@@ -212,12 +199,10 @@ def _candump_block(block: np.ndarray) -> Frames | None:
             return None
         if (m[:, h + 1 : e] == 35).any():
             return None  # CAN FD (##)
-        digits = np.concatenate([m[:, 1:d], m[:, d + 1 : c]], axis=1).astype(np.int64) - 48
-        if ((digits < 0) | (digits > 9)).any() or digits.shape[1] > 16:
+        ts = _decimal(m, 1, c)
+        if ts is None:
             return None
-        weights = 10 ** np.arange(digits.shape[1] - 1, -1, -1, dtype=np.int64)
-        # an exact integer over an exact power of ten: IEEE division rounds it as float() rounds the text
-        t[rows] = (digits @ weights) / float(10 ** (c - d - 1))
+        t[rows] = ts
         nid = h - s - 1
         idn = _HEX[m[:, s + 1 : h]].astype(np.int64)
         if (idn < 0).any() or not 1 <= nid <= 8:
@@ -241,78 +226,95 @@ def _candump_block(block: np.ndarray) -> Frames | None:
 
 
 def _asc_block(block: np.ndarray) -> Frames | None:
-    """Vector ASC lines in hex, ``stamp channel ID Rx|Tx d DLC b0 .. b7``; header and event lines python-can's
-    reader skips are skipped; None where a line might be a frame of another shape (the caller falls back)."""
+    """Vector ASC lines in hex, ``stamp channel ID Rx|Tx d DLC b0 .. b7 [...]``: the lines of each length, whose
+    tokens (checked on every line) stand at the same columns, parsed a column at a time. Lines python-can's
+    reader skips (no stamp, or no Rx/Tx) are skipped; a remote, error or FD frame gives None (the caller
+    falls back to python-can's reader for the block)."""
+    import re
+
     starts, ends = _lines(block)
-    ws = (block == 32) | (block == 9) | (block == 10) | (block == 13)
-    prev = np.concatenate([[True], ws[:-1]])
-    tok_start = np.flatnonzero(~ws & prev)
-    nxt = np.concatenate([ws[1:], [True]])
-    tok_end = np.flatnonzero(~ws & nxt) + 1
-    line_of = np.searchsorted(ends, tok_start)  # tokens never cross a line end
-    first = np.searchsorted(line_of, np.arange(len(starts)))
-    count = np.searchsorted(line_of, np.arange(len(starts)), side="right") - first
-    has = count >= 6
-    cand = np.flatnonzero(has)
-    f = first[cand]
-    tl = tok_end - tok_start
-
-    def tok(k: int) -> tuple[np.ndarray, np.ndarray]:
-        return tok_start[f + k], tl[f + k]
-
-    # a frame line: a number, a channel (digits), an ID, Rx/Tx, d, a DLC
-    s0, l0 = tok(0)
-    s1, l1 = tok(1)
-    s3, l3 = tok(3)
-    s4, l4 = tok(4)
-    c0 = block[s0]
-    numeric = (c0 >= 48) & (c0 <= 57)
-    chan_digit = (block[s1] >= 48) & (block[s1] <= 57) & (l1 <= 3)
-    rxtx = (l3 == 2) & (((block[s3] | 32) == ord("r")) | ((block[s3] | 32) == ord("t"))) & \
-        ((block[np.minimum(s3 + 1, len(block) - 1)] | 32) == ord("x"))
-    d = (l4 == 1) & ((block[s4] | 32) == ord("d"))
-    frame = numeric & chan_digit & rxtx & d
-    # a numbered line on a channel that is no data frame we parse (remote 'r', an error frame, FD): fall back
-    if (numeric & chan_digit & ~frame).any():
-        return None
-    cand, f = cand[frame], f[frame]
-    short = np.flatnonzero(~has & (count >= 3))
-    if len(short):  # "t 1 ErrorFrame" and the like: python-can's reader makes frames of them
-        fs = first[short]
-        c, chan = block[tok_start[fs]], block[tok_start[fs + 1]]
-        if (((c >= 48) & (c <= 57)) & ((chan >= 48) & (chan <= 57))).any():
-            return None
-    n = len(cand)
-    s0, l0 = tok(0)
-    t = _floats(block, s0, l0)
-    if t is None:
-        return None
-    s2, l2 = tok(2)
-    ext = block[s2 + l2 - 1] | 32 == ord("x")
-    id_len = np.where(ext, l2 - 1, l2)
-    if (id_len > 8).any():
-        return None
-    cob = _hex(block, s2, id_len, 8)
-    s5, l5 = tok(5)
-    if cob is None or (l5 != 1).any():
-        return None
-    dlc = _HEX[block[s5]].astype(np.int64)
-    if (dlc < 0).any() or (dlc > 8).any() or (count[cand] < 6 + dlc).any():
-        return None
+    length = ends - starts
+    keep = length > 0
+    starts, length = starts[keep], length[keep]
+    n = len(starts)
+    t = np.empty(n)
+    cob = np.empty(n, np.int64)
+    dlc = np.zeros(n, np.uint8)
     data = np.zeros((n, 8), np.uint8)
-    for k in range(8):
-        rows = np.flatnonzero(dlc > k)
-        if not len(rows):
-            break
-        sk, lk = tok_start[f[rows] + 6 + k], tl[f[rows] + 6 + k]
-        if (lk != 2).any():
+    frame = np.zeros(n, bool)
+    order = np.argsort(length, kind="stable")
+    bounds = np.flatnonzero(np.diff(length[order])) + 1
+    for rows in np.split(order, bounds) if n else []:
+        width = int(length[rows[0]])
+        m = _rows(block, starts[rows], width)
+        if m is None:
             return None
-        v = _hex(block, sk, lk, 2)
-        if v is None:
+        first = m[0].tobytes()
+        toks = [(x.start(), x.end()) for x in re.finditer(rb"[^ \t]+", first)]
+        blank = np.ones(width, bool)
+        for a, b in toks:
+            blank[a:b] = False
+        if not np.array_equal((m == 32) | (m == 9), np.broadcast_to(blank, m.shape)):
+            return None  # lines of one length but other columns: python-can's reader for this block
+        words = [first[a:b] for a, b in toks]
+        stamped = bool(re.fullmatch(rb"\d+\.\d+", words[0])) if words else False
+        if stamped and (m[:, toks[0][0]] < 48).any() | (m[:, toks[0][0]] > 57).any():
             return None
-        data[rows, k] = v
-    cob = np.where(ext, -1, cob).astype(np.int32)
-    return Frames(t, cob, dlc.astype(np.uint8), data)
+        if not stamped:
+            if words and words[0][:1].isdigit():
+                return None  # a stamp in some lines of the group and not in others
+            continue  # a line python-can's reader skips (End TriggerBlock, comments)
+        if len(words) > 1 and words[1].upper() == b"CANFD":
+            return None
+        if len(words) < 4 or not words[1].isdigit():
+            if len(words) > 1 and words[1][:1].isdigit():
+                return None
+            continue  # "Start of measurement", statistics: skipped by python-can
+        if words[2].lower().startswith(b"errorframe"):
+            return None
+        if words[3].lower() not in (b"rx", b"tx"):
+            continue  # python-can's reader takes only Rx/Tx lines
+        if len(words) < 6 or words[4][:1].lower() == b"r":
+            return None  # a remote frame, or a line of another shape
+        # on every line of the group: a channel of digits, Rx or Tx, a data frame ("d")
+        a, b = toks[1]
+        if ((m[:, a:b] < 48) | (m[:, a:b] > 57)).any():
+            return None
+        a, b = toks[3]
+        if b - a != 2 or not (((m[:, a] | 32 == ord("r")) | (m[:, a] | 32 == ord("t"))) &
+                              (m[:, a + 1] | 32 == ord("x"))).all():
+            return None
+        a, b = toks[4]
+        if (m[:, a:b] != np.frombuffer(words[4], np.uint8)).any():
+            return None
+        ts = _decimal(m, *toks[0])
+        if ts is None:
+            return None
+        a, b = toks[2]
+        ext = words[2][-1:].lower() == b"x"
+        idn = _HEX[m[:, a : b - 1 if ext else b]].astype(np.int64)
+        if (idn < 0).any() or idn.shape[1] > 8:
+            return None
+        a5, b5 = toks[5]
+        if b5 - a5 != 1:
+            return None
+        d = _HEX[m[:, a5]]
+        if (d < 0).any() or (d != d[0]).any() or d[0] > 8 or len(toks) < 6 + d[0]:
+            return None
+        nd = int(d[0])
+        for k in range(nd):
+            a, b = toks[6 + k]
+            if b - a != 2:
+                return None
+            v = _HEX[m[:, a:b]]
+            if (v < 0).any():
+                return None
+            data[rows, k] = (v[:, 0] << 4) | v[:, 1]
+        t[rows] = ts
+        cob[rows] = -1 if ext else idn @ (16 ** np.arange(idn.shape[1] - 1, -1, -1, dtype=np.int64))
+        dlc[rows] = nd
+        frame[rows] = True
+    return Frames(t[frame], cob[frame].astype(np.int32), dlc[frame], data[frame])
 
 
 def _split(frames: Frames, chunk: int) -> Iterator[Frames]:

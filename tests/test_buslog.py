@@ -228,6 +228,9 @@ def _canopen_master_log(tmp_path: Path, suffix: str = ".blf") -> tuple[Path, np.
         lockstep.advance(0.05)  # the drive's boot-up delay, in its own (simulated) time
         node.sdo[cia402.MODES_OF_OPERATION].raw = int(cia402.Mode.CYCLIC_SYNC_TORQUE)
         node.sdo[cia402.COMM_CYCLE_PERIOD].raw = 1000
+        assert node.sdo[0x1008].raw == "drivectl emulated drive"  # a segmented upload
+        with pytest.raises(canopen.SdoAbortedError):  # a segmented download of a read-only object: aborted
+            node.sdo.download(0x1008, 0, b"another name, longer")
         for maps, wanted in ((node.tpdo, {1: [(0x6064, 0), (0x6041, 0)], 2: [(0x6077, 0)]}),
                              (node.rpdo, {2: [(0x6071, 0), (0x6040, 0)]})):
             maps.read()
@@ -291,6 +294,9 @@ def test_a_log_of_canopens_own_master_with_its_own_mapping(tmp_path: Path, capsy
                                                                  for s in out)
     assert any(s.strip().split(" ", 1)[1].startswith("RPDO2 0x301: ") and "frames in second 0" in s for s in out)
     assert "mapping of node 1: the log's own PDO configuration SDO writes (TPDO1, TPDO2, RPDO2)" in out
+    assert any(s.endswith("SDO read 0x1008:00 Manufacturer device name -> 'drivectl emulated drive' (segmented, 23 "
+                          "bytes)") for s in out), out[:40]
+    assert any("SDO abort 0x1008:00 Manufacturer device name by the drive: 0x0601000" in s for s in out)
     # with the mapping of the configuration instead (the log cut before the first SYNC: no writes), nothing of
     # this node's PDOs is what the configuration expects: refused in one line, nothing guessed
     import can
@@ -436,6 +442,19 @@ def test_real_drives_eds_logs_convert_as_their_runs(tmp_path: Path, capsys) -> N
         done += 1
     capsys.readouterr()
     assert done >= 1
+
+
+def test_decode_names_an_emcy_and_the_fault_it_caused(tmp_path: Path, capsys) -> None:
+    log = tmp_path / "fault.log"
+    assert main(["trace", "--axis", "x", "--duration", "0.3", "--no-plot", "--quiet", "--fault", "emcy-fault@0.05",
+                 "--bus-log", str(log), "--out", str(tmp_path / "run")]) == 3
+    capsys.readouterr()
+    assert main(["decode", str(log), "--json"]) == 0
+    import json
+
+    events = [e["text"] for e in json.loads(capsys.readouterr().out)["events"]]
+    emcy = next(k for k, e in enumerate(events) if "EMCY 0x2310 continuous over-current (error register 0x01)" in e)
+    assert any("-> Fault (statusword" in e for e in events[emcy:])
 
 
 # -- lost, late, truncated ---------------------------------------------------------------------------------------

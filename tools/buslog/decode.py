@@ -108,6 +108,7 @@ class _Decoder:
         self.seconds: dict[tuple[str, int], list] = {}  # (pdo, second) -> [count, min, max, names]
         self.bad: dict[str, int] = {}
         self.pdo_frames = 0
+        self.t_last: float | None = None  # the last frame's stamp (the log's last, partial second ends there)
 
     def stamp(self, t: float) -> str:
         return f"{t - (self.t0 or 0.0):12.6f}"
@@ -192,7 +193,8 @@ class _Decoder:
         for key in done:
             count, lo, hi, names, cob = self.seconds.pop(key)
             span = ", ".join(f"{n} {a}" + (f"..{b}" if b != a else "") for n, a, b in zip(names, lo, hi, strict=True))
-            self.lines.append(((self.t0 or 0.0) + key[1] + 1 - 1e-9,
+            end = (self.t0 or 0.0) + key[1] + 1 - 1e-9
+            self.lines.append((end if upto is not None or self.t_last is None else min(end, self.t_last),
                                f"{key[0]} 0x{cob:03X}: {count} frames in second {key[1]}: {span}"))
         self.lines.sort(key=lambda x: x[0])
         if upto is None:
@@ -222,6 +224,8 @@ def decode_lines(log: Path, *, node: int, eds: str, mapping: str, every: bool = 
     for fr, segments in walk.chunks(log, reading, fast=fast, progress=progress):
         if dec.t0 is None and len(fr):
             dec.t0 = float(fr.t[0])
+        if len(fr):
+            dec.t_last = float(fr.t[-1])
         st = fr.t[fr.cob == SYNC_COB_ID]
         syncs += len(st)
         jitter.add(st, (walk.period_us or 1000) * 1e-6)

@@ -159,7 +159,7 @@ def test_other_formats_convert_as_the_log_does(tmp_path: Path, suffix: str) -> N
     assert np.allclose(tra.columns["frame_time_s"], trb.columns["frame_time_s"], atol=2e-4)
 
 
-@pytest.mark.parametrize("suffix", [".log", ".asc"])
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
 def test_the_numpy_reader_gives_what_python_cans_reader_gives(tmp_path: Path, suffix: str) -> None:
     """The fast path (tools/buslog/frames.py) against python-can's LogReader, the reference: the same frames
     array for array, and the same trace bit for bit (stamps included)."""

@@ -3,10 +3,11 @@
 Two readers give the same chunks (tests/test_buslog.py checks they are identical):
 
 - the reference: python-can's :class:`can.LogReader` (every suffix it reads), its Messages packed into arrays;
-- the fast path, for the text formats where LogReader is the bottleneck (candump ``.log``, Vector ``.asc`` in
-  hex): the text is cut into blocks of whole lines and parsed with numpy, never one Message per frame. A block
-  the fast parser does not recognise line for line (CAN FD, a decimal ``.asc``, an odd line) is handed to
-  python-can's own reader for that format, so nothing is guessed.
+- the fast path, for the formats where LogReader is the bottleneck (candump ``.log``, Vector ``.asc`` in hex,
+  ``.blf``; measured in docs/guide/buslog.md): text cut into blocks of whole lines and parsed with numpy, BLF
+  containers inflated and their objects' fields read with numpy; never one Message per frame. A text block the
+  fast parser does not recognise line for line (CAN FD, a remote or error frame, an odd line) is handed to
+  python-can's own reader for that format, so nothing is guessed; a decimal ``.asc`` is read by LogReader.
 
 A frame CANopen does not use here (extended or remote, an error frame, CAN FD) keeps its place with COB-ID
 -1: it is counted, never decoded. A log that ends early (a killed recorder) is read as far as it goes and

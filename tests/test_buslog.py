@@ -559,3 +559,15 @@ def test_replay_plays_the_drives_frames_with_their_timing(tmp_path: Path) -> Non
     assert [(m.arbitration_id, bytes(m.data)) for m in got[: len(recorded)]] == \
         [(m.arbitration_id, bytes(m.data)) for m in recorded]
     assert main(["replay", str(log), "--interface", "virtual", "--channel", channel, "--speed", "0"]) == 2
+    # --loop i ends on a stop request (a signal: read after every frame), not at the log's end
+    import math
+
+    from drivectl.tools.buslog.replay import replay
+
+    tx = can.Bus(interface="virtual", channel=channel)
+    try:
+        asked = iter(range(10**9))
+        sent = replay(log, tx, only=frozenset([0x181]), speed=1000, loops=math.inf, stop=lambda: next(asked) >= 250)
+    finally:
+        tx.shutdown()
+    assert 0 < sent < 250 and sent > sum(m.arbitration_id == 0x181 for m in recorded)  # past one pass of the log

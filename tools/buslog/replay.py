@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,12 +56,15 @@ def frames(log: Path, *, only: frozenset[int] | None, speed: float) -> Iterator[
 
 
 def replay(log: Path, bus: can.BusABC, *, only: frozenset[int] | None = None, speed: float = 1.0,
-           loops: float = 1, skip: float = 60 * 60 * 24) -> int:
-    """Play ``log`` onto ``bus``; the number of frames sent."""
+           loops: float = 1, skip: float = 60 * 60 * 24, stop: Callable[[], bool] = lambda: False) -> int:
+    """Play ``log`` onto ``bus`` until it has been played ``loops`` times or ``stop()`` (read after every frame:
+    a signal) says so; the number of frames sent."""
     sent = 0
     iteration = 0
-    while iteration < loops:
+    while iteration < loops and not stop():
         for msg in can.MessageSync(frames(log, only=only, speed=speed), timestamps=True, skip=skip):
+            if stop():
+                break
             bus.send(msg)
             sent += 1
         iteration += 1
@@ -117,13 +120,17 @@ def cmd_replay(args: Any) -> int:
     except Exception as exc:
         raise BusLogError(f"{log}: not a readable {log.suffix} CAN log: {str(exc).splitlines()[0] if str(exc) else exc}"
                           ) from None
+    from drivectl.controllers.runtime.interrupt import exit_code, stop_on_signals
+
     bus = open_bus(args.interface, args.channel, args.bitrate)
     try:
-        sent = replay(log, bus, only=only, speed=args.speed, loops=args.loop)
-    except KeyboardInterrupt:
-        print(f"replay: {log}: interrupted", file=sys.stderr)
-        return 130
+        with stop_on_signals() as request:  # Ctrl-C / SIGTERM end the replay after the frame in flight
+            sent = replay(log, bus, only=only, speed=args.speed, loops=args.loop, stop=lambda: bool(request.signum))
     finally:
         bus.shutdown()
-    print(f"replay: {log}: {sent} frames sent on {args.interface}:{args.channel}", file=sys.stderr)
+    where = f"{args.interface}:{args.channel}"
+    if request.signum:
+        print(f"replay: {log}: interrupted by {request.name} after {sent} frames sent on {where}", file=sys.stderr)
+        return exit_code(request)
+    print(f"replay: {log}: {sent} frames sent on {where}", file=sys.stderr)
     return 0

@@ -457,6 +457,73 @@ def test_decode_names_an_emcy_and_the_fault_it_caused(tmp_path: Path, capsys) ->
     assert any("-> Fault (statusword" in e for e in events[emcy:])
 
 
+def _sdo_write(t: float, index: int, sub: int, value: int, size: int = 4) -> list:
+    """An expedited SDO download to node 1 and the drive's confirmation, as can.Messages."""
+    import can
+
+    cmd = {1: 0x2F, 2: 0x2B, 4: 0x23}[size]
+    req = bytes([cmd]) + index.to_bytes(2, "little") + bytes([sub]) + value.to_bytes(4, "little")
+    ack = bytes([0x60]) + index.to_bytes(2, "little") + bytes([sub]) + bytes(4)
+    return [can.Message(timestamp=t, arbitration_id=0x601, data=req, is_extended_id=False),
+            can.Message(timestamp=t + 1e-4, arbitration_id=0x581, data=ack, is_extended_id=False)]
+
+
+def test_a_reference_on_the_bus_becomes_ref_m(tmp_path: Path) -> None:
+    """A master in cyclic synchronous position: its RPDO carries 0x607A (the reference) and 0x60B2 (a torque
+    offset, the effort); no 0x6071. The mapping comes from the log's writes, the reference becomes ref_m."""
+    import can
+    import canopen
+    from canopen.objectdictionary import INTEGER16, INTEGER32, ODVariable
+
+    from drivectl.plant_emulator.node402 import EMULATED_DRIVE_EDS
+
+    od = canopen.import_od(str(EMULATED_DRIVE_EDS), 1)
+    for index, name, dtype in ((0x607A, "Target position", INTEGER32), (0x60B2, "Torque offset", INTEGER16)):
+        var = ODVariable(name, index, 0)
+        var.data_type, var.access_type, var.pdo_mappable = dtype, "rw", True
+        od.add_object(var)
+    eds = tmp_path / "csp.eds"
+    canopen.export_od(od, str(eds), doc_type="eds")
+    msgs = []
+    for k, (index, sub, value, size) in enumerate([
+            (0x1006, 0, 2000, 4), (0x1400, 1, 0x80000201, 4), (0x1600, 0, 0, 1), (0x1600, 1, 0x607A0020, 4),
+            (0x1600, 2, 0x60B20010, 4), (0x1600, 0, 2, 1), (0x1400, 1, 0x201, 4), (0x1801, 1, 0x80000281, 4)]):
+        msgs += _sdo_write(0.001 * k, index, sub, value, size)
+    for k in range(60):
+        t = 0.1 + 0.002 * k
+        msgs.append(can.Message(timestamp=t, arbitration_id=0x080, data=b"", is_extended_id=False))
+        msgs.append(can.Message(timestamp=t + 1e-4, arbitration_id=0x181, is_extended_id=False,
+                                data=(0x1237).to_bytes(2, "little") + (10 * k).to_bytes(4, "little", signed=True)))
+        msgs.append(can.Message(timestamp=t + 3e-4, arbitration_id=0x201, is_extended_id=False,
+                                data=(10 * k + 5).to_bytes(4, "little", signed=True) + (-100).to_bytes(2, "little",
+                                                                                                      signed=True)))
+    log = tmp_path / "csp.log"
+    with can.Logger(str(log)) as writer:
+        for m in msgs:
+            writer.on_message_received(m)
+    from drivectl.tools.buslog import log_to_trace
+
+    tr = Trace.read(log_to_trace(log, axis="x", out_dir=tmp_path / "c", eds=eds))
+    res = 76.29e-9
+    assert tr.meta["ref"] == "0x607A target position" and tr.meta["dt_source"] == "0x1006 written in the log"
+    assert tr.dt == pytest.approx(0.002) and len(tr) == 60 and tr.meta["lost_rows"] == "0"
+    assert tr.meta["mapping_source"].startswith("the log's own PDO configuration SDO writes (RPDO1); the mapping "
+                                                "of TPDO1 from the configuration")
+    assert np.allclose(tr.ref, (10 * np.arange(60) + 5) * res, atol=0.51e-9)  # ref_m and pos_m: %.9f in the file
+    assert np.allclose(tr.pos, 10 * np.arange(60) * res, atol=0.51e-9)
+    assert np.allclose(tr.effort, -100 * 100.0 / 1000, atol=1e-12)  # 0x60B2 through the rated effort
+
+
+def test_health_ingest_takes_a_bus_log(tmp_path: Path, capsys) -> None:
+    pytest.importorskip("pyarrow")
+    log = tmp_path / "x.log"
+    assert main(["trace", "--axis", "x", "--duration", "0.05", "--no-plot", "--quiet", "--bus-log", str(log),
+                 "--out", str(tmp_path / "run")]) == 0
+    capsys.readouterr()
+    assert main(["health", "ingest", str(log), "--machine", "m1", "--axis", "x", "--store", str(tmp_path / "s")]) == 0
+    assert "1 added" in capsys.readouterr().out
+
+
 # -- lost, late, truncated ---------------------------------------------------------------------------------------
 def test_a_late_pdo_flags_its_row_and_is_not_moved(tmp_path: Path) -> None:
     """TPDO1 of one SYNC sent after the next SYNC: that row is lost (NaN position), the next row takes the

@@ -237,7 +237,9 @@ def log_to_trace(log: Path, *, axis: str, out_dir: Path, node: int | None = None
         if not len(stamps):
             return
         jitter.add(stamps, dt_now()[0])
-        lost = (expect & ~have).any(axis=1) | ~have[:, _F["pos"]] | ~have[:, _F["effort"]]
+        # lost: a PDO the mapping sends at every SYNC did not come for it; a row without a position is one too
+        # (an effort the master never sends, as in CSP without a torque offset, is NaN, not a loss)
+        lost = (expect & ~have).any(axis=1) | ~have[:, _F["pos"]]
         if writer is None:
             good = np.flatnonzero(~lost)
             if not len(good):

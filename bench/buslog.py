@@ -45,9 +45,10 @@ def cpu():
 t0, c0 = time.perf_counter(), cpu()
 path = log_to_trace(Path(sys.argv[1]), axis="x", out_dir=Path(sys.argv[2]))
 dt, dc = time.perf_counter() - t0, cpu() - c0
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # the conversion's peak, before the check reads
 from drivectl.tracefile.format import Trace
 tr = Trace.read(path, columns=("lost",))
-print(dt, dc, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, len(tr), tr.meta["frames"],
+print(dt, dc, rss, len(tr), tr.meta["frames"],
       tr.meta["lost_rows"], tr.meta["mapping_source"].split(" (")[0].replace(" ", "_"))
 """
 

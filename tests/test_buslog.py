@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivectl.machine.config import load_config
-from drivectl.tools.buslog import is_bus_log
+from drivectl.tools.buslog import BusLogError, is_bus_log
 from drivectl.tools.cli.main import main
 from drivectl.tracefile.format import Trace
 
@@ -512,6 +512,22 @@ def test_a_reference_on_the_bus_becomes_ref_m(tmp_path: Path) -> None:
     assert np.allclose(tr.ref, (10 * np.arange(60) + 5) * res, atol=0.51e-9)  # ref_m and pos_m: %.9f in the file
     assert np.allclose(tr.pos, 10 * np.arange(60) * res, atol=0.51e-9)
     assert np.allclose(tr.effort, -100 * 100.0 / 1000, atol=1e-12)  # 0x60B2 through the rated effort
+    # without the torque offset the master commands no effort: refused in one line, no trace half-made
+    msgs2 = [m for m in msgs if not (m.arbitration_id == 0x601 and m.data[1:4] == b"\x00\x16\x02")]
+    for m in msgs2:
+        if m.arbitration_id == 0x601 and m.data[1:4] == b"\x00\x16\x00" and m.data[4] == 2:
+            m.data[4] = 1  # one entry: 0x607A alone
+        if m.arbitration_id == 0x201:
+            m.data = m.data[:4]
+            m.dlc = 4
+    log2 = tmp_path / "csp-no-effort.log"
+    with can.Logger(str(log2)) as writer:
+        for m in msgs2:
+            writer.on_message_received(m)
+    with pytest.raises(BusLogError, match=r"csp-no-effort.log: node 1 has no commanded effort \(0x6071 or 0x60B2\) in "
+                       r"its RPDOs: nothing to trace"):
+        log_to_trace(log2, axis="x", out_dir=tmp_path / "c2", eds=eds)
+    assert not (tmp_path / "c2").exists() or not list((tmp_path / "c2").iterdir())
 
 
 def test_health_ingest_takes_a_bus_log(tmp_path: Path, capsys) -> None:

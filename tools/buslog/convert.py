@@ -237,9 +237,9 @@ def log_to_trace(log: Path, *, axis: str, out_dir: Path, node: int | None = None
         if not len(stamps):
             return
         jitter.add(stamps, dt_now()[0])
-        # lost: a PDO the mapping sends at every SYNC did not come for it; a row without a position is one too
-        # (an effort the master never sends, as in CSP without a torque offset, is NaN, not a loss)
-        lost = (expect & ~have).any(axis=1) | ~have[:, _F["pos"]]
+        # lost: a PDO the mapping sends at every SYNC did not come for it, or the row has no position or no
+        # effort (a trace needs both: docs/trace-format.md)
+        lost = (expect & ~have).any(axis=1) | ~have[:, _F["pos"]] | ~have[:, _F["effort"]]
         if writer is None:
             good = np.flatnonzero(~lost)
             if not len(good):
@@ -287,6 +287,11 @@ def log_to_trace(log: Path, *, axis: str, out_dir: Path, node: int | None = None
     if not reading.frames:
         raise BusLogError(f"{log}: no CAN frames in it (not a {log.suffix} log, or an empty one)")
     if writer is None:
+        where = _where(nm.active())
+        if rows.pdo_frames and ("effort" not in where or "pos" not in where):
+            what = "commanded effort (0x6071 or 0x60B2) in its RPDOs" if "effort" not in where else \
+                "position 0x6064 in its TPDOs"
+            raise BusLogError(f"{log}: node {node_id} has no {what}: nothing to trace (mapping from {nm.source})")
         cobs = ", ".join(f"0x{a.cob:03X}" for a in nm.active()) or "none valid"
         why = f"; {nm.errors[0]}" if nm.errors else ""
         raise BusLogError(f"{log}: no PDOs of node {node_id} (COB-IDs {cobs}) after a SYNC, in {reading.frames} "

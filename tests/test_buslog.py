@@ -339,6 +339,13 @@ def test_pdo_of_the_wrong_length_is_counted_not_decoded(tmp_path: Path, capsys) 
     obj = json.loads(capsys.readouterr().out)
     assert obj["bad_length_pdos"] == {"TPDO1": 2}
     assert sum("5 bytes, the mapping has 6: not decoded" in e["text"] for e in obj["events"]) == 2
+    # --all: one line per frame decoded, none for the two of the wrong length
+    with can.LogReader(str(bad)) as reader:
+        tpdo1 = sum(m.arbitration_id == 0x181 and len(m.data) == 6 for m in reader)
+    assert main(["decode", str(bad), "--all"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sum(" TPDO1 0x181: 0x6041 statusword " in s for s in lines) == tpdo1 > 50
+    assert not any("frames in second" in s for s in lines)
 
 
 def _fixed_eds(tmp_path: Path) -> Path:

@@ -148,10 +148,13 @@ class PidDob(Pid):
 
     @classmethod
     def for_plant(cls, dt: float, plant_spec: Any, axis: str = "x", **settings: Any) -> PidDob:
-        """Table 1's column for ``axis`` with the plant's nominal mass (Table 2)."""
-        if axis not in TABLE1_KI:
-            raise SettingsError(f"controller {cls.name}: axis: must be 'x' or 'y', got {axis!r}")
-        base: dict[str, Any] = {"ki": TABLE1_KI[axis], "ff_mass": _mass_of(plant_spec)}
+        """Table 1's column for ``axis`` (x, y; another axis, such as z, takes the defaults, Table 1's X, as
+        ``pid`` does: set its gains) with the plant's nominal mass: Table 2's on a rigid plant, the total
+        ``m1 + m2`` on a two-mass one (below its mode the axis moves as that one body, the rigid model
+        m q'' = f - g the observer assumes)."""
+        base: dict[str, Any] = {"ff_mass": _mass_of(plant_spec)}
+        if axis in TABLE1_KI:
+            base["ki"] = TABLE1_KI[axis]
         return cls(dt, {**base, **settings})
 
     def reset(self) -> None:
@@ -197,8 +200,10 @@ class PidDob(Pid):
 
 
 def _mass_of(plant_spec: Any) -> float:
-    """The nominal moving mass of a PlantSpec (``params['mass']``) or of a mapping of parameters."""
-    params = plant_spec if isinstance(plant_spec, Mapping) else plant_spec.params
-    if "mass" not in params:
-        raise SettingsError("plant: mass: missing (pid-dob needs a rigid plant's mass)")
-    return float(params["mass"])
+    """The nominal moving mass of a PlantSpec (its parameters' bodies in total: ``mass``, or ``m1 + m2``;
+    its effects are not the model) or of a mapping of a rigid plant's parameters (``mass``)."""
+    if not isinstance(plant_spec, Mapping):
+        return float(plant_spec.without_effects().nominal_mass)
+    if "mass" not in plant_spec:
+        raise SettingsError("plant: mass: missing (pid-dob needs the nominal mass of eqs (2)-(3))")
+    return float(plant_spec["mass"])

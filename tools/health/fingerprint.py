@@ -80,10 +80,11 @@ def check_fingerprint(ax: Any, profile: Profile, dt: float) -> None:
 
 def run_fingerprint(machine: Any, axis: str, *, machine_name: str, out: str | Path,
                     store: str | Path | None = None, profile: Profile | None = None,
-                    timeout: float | None = None) -> FingerprintResult:
+                    timeout: float | None = None, started: datetime | None = None) -> FingerprintResult:
     """Run the fingerprint of ``axis`` on ``machine`` (a :class:`drivectl.session.Machine` whose axis is
     enabled), record it into ``out`` (``AXIS-STAMP.csv``) and, completed, ingest it into ``store``
-    (None: not ingested). A fault ends the run as any run's does (the loop's fault reaction); the
+    (None: not ingested). ``started``: the run's ``# started_utc`` (default: now; a generated history
+    gives its own, a shift apart). A fault ends the run as any run's does (the loop's fault reaction); the
     result says how it ended, and the trace keeps what was recorded."""
     from drivectl.controllers.runtime.loop import MotionFault
     from drivectl.tools.health.store import check_machine
@@ -92,7 +93,7 @@ def run_fingerprint(machine: Any, axis: str, *, machine_name: str, out: str | Pa
     ax = machine.axes[axis]
     profile = profile if profile is not None else fingerprint_profile(machine.config, axis)
     check_fingerprint(ax, profile, machine.loop.dt)
-    started = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    started = (started or datetime.now(UTC)).astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     handle = ax.run(profile, approach=True, record=Path(out),
                     meta={"machine": machine_name, "started_utc": started, "health": "fingerprint"})
     detail = ""

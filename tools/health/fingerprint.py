@@ -78,40 +78,72 @@ def check_fingerprint(ax: Any, profile: Profile, dt: float) -> None:
                              profile.sample(t)[0], t)
 
 
-def run_fingerprint(machine: Any, axis: str, *, machine_name: str, out: str | Path,
-                    store: str | Path | None = None, profile: Profile | None = None,
-                    timeout: float | None = None, started: datetime | None = None) -> FingerprintResult:
-    """Run the fingerprint of ``axis`` on ``machine`` (a :class:`drivectl.session.Machine` whose axis is
-    enabled), record it into ``out`` (``AXIS-STAMP.csv``) and, completed, ingest it into ``store``
-    (None: not ingested). ``started``: the run's ``# started_utc`` (default: now; a generated history
-    gives its own, a shift apart). A fault ends the run as any run's does (the loop's fault reaction); the
-    result says how it ended, and the trace keeps what was recorded."""
-    from drivectl.controllers.runtime.loop import MotionFault
+@dataclass
+class Started:
+    """A fingerprint run under way: its handle (the resident loop's), where it goes and when it began."""
+
+    handle: Any
+    axis: str
+    machine_name: str
+    started_utc: str
+    store: Path | None
+    config: Any
+
+
+def start_fingerprint(machine: Any, axis: str, *, machine_name: str, out: str | Path,
+                      store: str | Path | None = None, profile: Profile | None = None,
+                      started: datetime | None = None) -> Started:
+    """The refusals, then the run started (it approaches the profile's start first): the loop goes on
+    with it while the caller waits (:func:`run_fingerprint`) or watches it (the console's Health page)."""
     from drivectl.tools.health.store import check_machine
 
     check_machine(machine_name)
     ax = machine.axes[axis]
     profile = profile if profile is not None else fingerprint_profile(machine.config, axis)
     check_fingerprint(ax, profile, machine.loop.dt)
-    started = (started or datetime.now(UTC)).astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    when = (started or datetime.now(UTC)).astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     handle = ax.run(profile, approach=True, record=Path(out),
-                    meta={"machine": machine_name, "started_utc": started, "health": "fingerprint"})
+                    meta={"machine": machine_name, "started_utc": when, "health": "fingerprint"})
+    return Started(handle, axis, machine_name, when, Path(store) if store is not None else None, machine.config)
+
+
+def finish_fingerprint(run: Started, detail: str = "") -> FingerprintResult:
+    """Once the run's handle is done: its trace closed (on this side, never in the cycle) and, completed,
+    ingested."""
+    handle = run.handle
+    handle.close_record()
+    result = FingerprintResult(run.axis, str(handle.status), handle.path, run.started_utc,
+                               detail or handle.record_error or ("" if handle.status == "done" else handle.detail))
+    if handle.status == "done" and handle.path is not None and run.store is not None:
+        from drivectl.tools.health.store import Store
+
+        with Store(run.store) as s:
+            result.ingest = s.ingest(handle.path, run.machine_name, config=run.config)
+    return result
+
+
+def run_fingerprint(machine: Any, axis: str, *, machine_name: str, out: str | Path,
+                    store: str | Path | None = None, profile: Profile | None = None,
+                    timeout: float | None = None, started: datetime | None = None) -> FingerprintResult:
+    """Run the fingerprint of ``axis`` on ``machine`` (a :class:`drivectl.session.Machine` whose axis is
+    enabled), record it into ``out`` (``AXIS-STAMP.csv``) and, completed, ingest it into ``store``
+    (None: not ingested). ``started``: the run's ``# started_utc`` (default: now; a generated history
+    gives its own, a shift apart). A fault ends the run as any run's does (the loop's fault reaction);
+    the result says how it ended, and the trace keeps what was recorded."""
+    from drivectl.controllers.runtime.loop import MotionFault
+
+    profile = profile if profile is not None else fingerprint_profile(machine.config, axis)
+    run = start_fingerprint(machine, axis, machine_name=machine_name, out=out, store=store, profile=profile,
+                            started=started)
     detail = ""
     try:
-        handle.wait(timeout if timeout is not None else profile.duration + APPROACH_ALLOWANCE_S)
+        run.handle.wait(timeout if timeout is not None else profile.duration + APPROACH_ALLOWANCE_S)
     except MotionFault as exc:
         detail = str(exc)
     except TimeoutError as exc:  # the loop goes on: stop the run, as the shell's timeout does
-        ax.stop("health run timed out").wait(5.0)
-        handle.close_record()
+        machine.axes[axis].stop("health run timed out").wait(5.0)
         detail = str(exc)
-    result = FingerprintResult(axis, str(handle.status), handle.path, started, detail or handle.record_error)
-    if handle.status == "done" and handle.path is not None and store is not None:
-        from drivectl.tools.health.store import Store
-
-        with Store(store) as s:
-            result.ingest = s.ingest(handle.path, machine_name, config=machine.config)
-    return result
+    return finish_fingerprint(run, detail)
 
 
 def default_machine_name(cfg: Any) -> str:

@@ -19,6 +19,8 @@ For a series x_0..x_{n-1} in time order:
    ``k`` and both shapes is compared with the chi-square quantile at ``ALPHA / (number of tests)``
    (Bonferroni over the candidates): a false alarm on a clean series has a probability below ``ALPHA``
    whatever its length, and no threshold is in the parameter's units.
+   The change must also hold: the last ``MIN_AFTER`` runs (through the median) all lie beyond every
+   run before the onset, on the side it went.
 4. **The slope** from the onset on (least squares on the raw runs, per 100 runs), and where it leads:
    the run and time at which the line crosses the parameter's limit, if it goes towards it.
 """
@@ -132,6 +134,11 @@ def find_change(x: np.ndarray, uncertainty: np.ndarray | None = None) -> Change 
     stat, k, shape = best
     limit = threshold(n)
     if stat <= limit:
+        return None
+    # the change holds to the end: the last MIN_AFTER runs (through the median) all beyond every run
+    # before the onset, on the side it went (a swing that came back, a day's warm afternoon, is not wear)
+    before, last = y[:k], y[-MIN_AFTER:]
+    if not (last.min() > before.max() if y[k:].mean() > before.mean() else last.max() < before.min()):
         return None
     after = x[k:]
     slope = float(np.polyfit(np.arange(len(after), dtype=float), after, 1)[0]) if len(after) >= 2 else 0.0

@@ -74,7 +74,7 @@ async function loadHealthAxis(machine, axis) {
       if (s.limit !== null) shapes.push({ type: "line", xref: "paper", x0: 0, x1: 1, yref: yaxis, y0: s.limit, y1: s.limit, line: { color, dash: "dash", width: 1 } });
       if (s.onset_utc) shapes.push({ type: "line", yref: "paper", y0: 0, y1: 1, x0: s.onset_utc, x1: s.onset_utc, line: { color: s.alarm ? "red" : "grey", width: s.alarm ? 2 : 1, dash: s.alarm ? "solid" : "dot" } });
     });
-    const layout = { title: { text: effect + (alarm ? "  ALARM" : ""), font: { size: 12, color: alarm ? "red" : "black" } },
+    const layout = { title: { text: effect + (alarm ? "  ALARM" : ""), x: 0.01, xanchor: "left", font: { size: 12, color: alarm ? "red" : "black" } },
       margin: { l: 50, r: 50, t: 28, b: 30 }, height: 220, shapes, showlegend: true, legend: { orientation: "h", y: -0.25 },
       yaxis: { title: { text: series[0].param, font: { size: 10 } } } };
     if (series.length > 1) layout.yaxis2 = { overlaying: "y", side: "right", title: { text: series[1].param, font: { size: 10 } } };
@@ -101,17 +101,6 @@ const baseOnStatus = onStatus;
 onStatus = function (st) { baseOnStatus(st); healthStatus(st); };  // eslint-disable-line no-func-assign
 const baseShowPage = showPage;
 showPage = function (name) { baseShowPage(name); if (name === "health") loadHealthFleet(); };  // eslint-disable-line no-func-assign
-$("#health-run").disabled = h.running;
-  if (was && !h.running && !$("#page-health").classList.contains("hidden")) loadHealthFleet();
-}
-
-const baseOnStatus = onStatus;
-onStatus = function (st) { baseOnStatus(st); healthStatus(st); };  // eslint-disable-line no-func-assign
-const baseShowPage = showPage;
-showPage = function (name) { baseShowPage(name); if (name === "health") loadHealthFleet(); };  // eslint-disable-line no-func-assign
-for (const b of document.querySelectorAll("header nav button")) {  // the tabs call the wrapped showPage
-  if (b.dataset.page === "health") b.addEventListener("click", () => loadHealthFleet());
-}
 
 $("#health-run").addEventListener("click", () => {
   send("health_run", { axis: $("#health-axis").value, machine: $("#health-machine").value });

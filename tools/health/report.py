@@ -355,6 +355,6 @@ def plot(rep: AxisReport, path: str | Path) -> Path:
                  fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=90)
     plt.close(fig)
     return path

@@ -21,8 +21,9 @@ For a series x_0..x_{n-1} in time order:
    whatever its length, and no threshold is in the parameter's units.
    The change must also hold: the last ``MIN_AFTER`` runs (through the median) all lie beyond every
    run before the onset, on the side it went.
-4. **The slope** from the onset on (least squares on the raw runs, per 100 runs), and where it leads:
-   the run and time at which the line crosses the parameter's limit, if it goes towards it.
+4. **The slope** from the onset on (least squares through the series tested, per 100 runs; its value
+   at the last run is the value now), and where it leads: the run and time at which the line crosses
+   the parameter's limit, if it goes towards it.
 """
 
 from __future__ import annotations
@@ -140,10 +141,12 @@ def find_change(x: np.ndarray, uncertainty: np.ndarray | None = None) -> Change 
     before, last = y[:k], y[-MIN_AFTER:]
     if not (last.min() > before.max() if y[k:].mean() > before.mean() else last.max() < before.min()):
         return None
-    after = x[k:]
-    slope = float(np.polyfit(np.arange(len(after), dtype=float), after, 1)[0]) if len(after) >= 2 else 0.0
+    # the line through the runs from the onset on (through the median: a fit that fell into another
+    # minimum on one run moves it little): its slope, and its value at the last run is "now"
+    j = np.arange(n - k, dtype=float)
+    slope, at0 = (float(c) for c in np.polyfit(j, y[k:], 1))
     return Change(onset=k, shape=shape, statistic=stat, threshold=limit, sigma=sigma,
-                  first_value=float(np.median(x[:k])), last_value=float(y[-1]), slope_per_run=slope)
+                  first_value=float(np.median(x[:k])), last_value=at0 + slope * j[-1], slope_per_run=slope)
 
 
 def runs_to_limit(last: float, slope_per_run: float, limit: float, first: float) -> float | None:

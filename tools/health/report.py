@@ -3,8 +3,9 @@ it began to change (tools/health/trend.py), its slope and when it crosses its li
 table ranking every axis by its worst alarm; a figure with one panel per effect (docs/health.md).
 
 An alarm is a change found in a parameter whose effect explains what changed: on the runs from the
-onset on, that effect's fit closes the gap between the model and the run (the fit's ``gap``) about as
-well as the best of the changed effects does (within ``NAMING_FACTOR``). A wear moves the single fits
+onset on, that effect's fit closes the gap between the model and the run (the fit's ``gap``) by a
+tenth at least (``EXPLAINS``) and about as well as the best of the changed effects does (within
+``NAMING_FACTOR``). A wear moves the single fits
 of several effects (viscous friction grown also raises the Coulomb fit, which absorbs part of it);
 those changes are shown as following the named effect, not as alarms of their own.
 """
@@ -23,8 +24,13 @@ from drivectl.errors import InputError
 from drivectl.tools.health.deps import need
 from drivectl.tools.health.trend import Change, find_change, runs_to_limit
 
+#: a crossing further than this many runs away is said as such, without a date (centuries of shifts)
+FAR_RUNS = 100_000
 #: an effect is named (an alarm) when its gap score is within this factor of the best changed effect's
 NAMING_FACTOR = 1.25
+#: ... and its fit closes at least a tenth of the model's gap on the runs since the onset: the parameters
+#: of an effect that is not there (a period without an amplitude) wander, and explain nothing
+EXPLAINS = 0.9
 
 
 @dataclass
@@ -195,7 +201,7 @@ def _analyse(rep: AxisReport, limits: dict[str, float]) -> None:
         if t.limit is not None:
             t.runs_to_limit = runs_to_limit(t.change.last_value, t.change.slope_per_run, t.limit,
                                             t.change.first_value)
-            if t.runs_to_limit is not None and interval is not None:
+            if t.runs_to_limit is not None and interval is not None and t.runs_to_limit <= FAR_RUNS:
                 t.cross_utc = rep.started[-1] + interval * t.runs_to_limit
     changed = [t for t in rep.trends if t.change is not None and math.isfinite(t.gap_score)]
     if changed:
@@ -203,7 +209,7 @@ def _analyse(rep: AxisReport, limits: dict[str, float]) -> None:
         for t in changed:
             # the effect explains what changed: its fit closes the gap on the runs since the onset (below
             # the model's), about as well as the best changed effect's does
-            t.alarm = t.gap_score < 1.0 and t.gap_score <= NAMING_FACTOR * best
+            t.alarm = t.gap_score <= EXPLAINS and t.gap_score <= NAMING_FACTOR * best
 
 
 def _run_interval(started: list[datetime]) -> timedelta | None:
@@ -250,6 +256,8 @@ def _crossing(t: Trend) -> str:
         return f"limit {_num(t.limit)}: not towards it"
     if t.runs_to_limit == 0.0:
         return f"past its limit {_num(t.limit)}"
+    if t.runs_to_limit > FAR_RUNS:
+        return f"limit {_num(t.limit)}: more than {FAR_RUNS} runs away"
     when = f" ({_utc(t.cross_utc)})" if t.cross_utc is not None else ""
     return f"limit {_num(t.limit)} in {t.runs_to_limit:.0f} runs{when}"
 

@@ -21,9 +21,9 @@ For a series x_0..x_{n-1} in time order:
    whatever its length, and no threshold is in the parameter's units.
    The change must also hold: the last ``MIN_AFTER`` runs (through the median) all lie beyond every
    run before the onset, on the side it went.
-4. **The slope** from the onset on (least squares through the series tested, per 100 runs; its value
-   at the last run is the value now), and where it leads: the run and time at which the line crosses
-   the parameter's limit, if it goes towards it.
+4. **The slope** from the onset on (Theil-Sen through the raw runs: the median of the slopes between
+   every two, per 100 runs; its line's value at the last run is the value now), and where it leads:
+   the run and time at which the line crosses the parameter's limit, if it goes towards it.
 """
 
 from __future__ import annotations
@@ -141,10 +141,13 @@ def find_change(x: np.ndarray, uncertainty: np.ndarray | None = None) -> Change 
     before, last = y[:k], y[-MIN_AFTER:]
     if not (last.min() > before.max() if y[k:].mean() > before.mean() else last.max() < before.min()):
         return None
-    # the line through the runs from the onset on (through the median: a fit that fell into another
-    # minimum on one run moves it little): its slope, and its value at the last run is "now"
+    # the line through the runs from the onset on, Theil-Sen (the median of the slopes between every two
+    # runs: a fit that fell into another minimum on one run moves it little): its slope, and its value
+    # at the last run is "now"
+    from scipy.stats import theilslopes
+
     j = np.arange(n - k, dtype=float)
-    slope, at0 = (float(c) for c in np.polyfit(j, y[k:], 1))
+    slope, at0 = (float(c) for c in theilslopes(x[k:], j)[:2])
     return Change(onset=k, shape=shape, statistic=stat, threshold=limit, sigma=sigma,
                   first_value=float(np.median(x[:k])), last_value=at0 + slope * j[-1], slope_per_run=slope)
 

@@ -76,8 +76,12 @@ class AxisReport:
 
     @property
     def alarms(self) -> list[Trend]:
-        """The alarms (effects that explain the change about equally well), the strongest change first."""
-        return sorted((t for t in self.trends if t.alarm), key=_alarm_order)
+        """The alarms (effects that explain the change about equally well): the effect with the fewest
+        parameters first (of two that explain it alike, the simpler), then the strongest change."""
+        size: dict[str, int] = {}
+        for t in self.trends:
+            size[t.effect] = size.get(t.effect, 0) + 1
+        return sorted((t for t in self.trends if t.alarm), key=lambda t: (size[t.effect], *_alarm_order(t)))
 
     @property
     def following(self) -> list[Trend]:

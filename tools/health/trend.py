@@ -3,12 +3,12 @@ change (docs/health.md "The method"). Pure numpy/scipy: the report feeds it the 
 
 For a series x_0..x_{n-1} in time order:
 
-1. **The run-to-run noise** ``sigma``: from the first differences, robustly,
-   ``1.4826 * MAD(diff(x)) / sqrt(2)`` (a step or a slow trend moves one difference, or all of them
-   alike, and leaves their spread; the day's temperature from shift to shift is part of it), never
-   below the fits' own uncertainty where the store has one (its median), nor below half the smallest
-   step the fitter makes between runs (its resolution: a fitter on a grid returns the same value on
-   most clean runs).
+1. **The run-to-run noise** ``sigma``: from the differences between consecutive runs, their RMS about
+   their median with the largest tenth (at least one) left out, over sqrt(2), unbiased for Gaussian
+   noise (a step moves one difference, which is left out; a steady trend moves all alike, which the
+   median takes out; the day's temperature from shift to shift is part of it); never below the fits'
+   own uncertainty where the store has one (its median), nor below half the smallest step the fitter
+   makes between runs (its resolution: a fitter on a grid returns the same value on most clean runs).
 2. **The series tested** is the series through a running median of three (Tukey's end-point rule at
    the ends), so that one odd run moves nothing; a change must hold for two runs to be seen.
 3. **The change-point test**: for every candidate onset ``k`` with at least ``MIN_BEFORE`` runs before
@@ -16,9 +16,11 @@ For a series x_0..x_{n-1} in time order:
    noise of ``sigma``: a step (one level before ``k``, another from ``k`` on) and a ramp (a level
    before, a straight line from it from ``k`` on: wear that grows). ``2 log LR = (RSS_0 - RSS_k) /
    sigma^2``, each chi-square with one degree of freedom when nothing changed. The largest over every
-   ``k`` and both shapes is compared with the chi-square quantile at ``ALPHA / (number of tests)``
-   (Bonferroni over the candidates): a false alarm on a clean series has a probability below ``ALPHA``
-   whatever its length, and no threshold is in the parameter's units.
+   ``k`` and both shapes is compared with its (1 - ``ALPHA``) quantile when nothing changed: measured,
+   up to ``CALIBRATED_N`` runs, on Gaussian series put through the same procedure (the noise estimated
+   from each series, as it is from a real one), beyond that the chi-square quantile at ``ALPHA / (number
+   of tests)`` (Bonferroni over the candidates). A false alarm on a clean series has a probability of
+   about ``ALPHA`` whatever its length, and no threshold is in the parameter's units.
    The change must also hold: the last ``MIN_AFTER`` runs (through the median) all lie beyond every
    run before the onset, on the side it went.
 4. **The slope** from the onset on (Theil-Sen through the raw runs: the median of the slopes between
@@ -28,18 +30,20 @@ For a series x_0..x_{n-1} in time order:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 #: the family-wise false-alarm probability of one parameter's series (Bonferroni over its candidate onsets)
-ALPHA = 1e-3
+ALPHA = 5e-3
 #: runs the test needs before a candidate onset (the level it leaves) and from it on (the change held)
 MIN_BEFORE = 3
 MIN_AFTER = 3
-#: 1.4826 * MAD estimates a Gaussian's standard deviation
-MAD_TO_SIGMA = 1.4826
+#: up to this many runs the threshold is measured (Monte Carlo) rather than taken from the chi-square
+CALIBRATED_N = 60
+CALIBRATION_DRAWS = 40_000
+
 
 
 @dataclass(frozen=True)
@@ -58,22 +62,33 @@ class Change:
     slope_per_run: float
 
 
-def noise_sigma(x: np.ndarray, uncertainty: np.ndarray | None = None) -> float:
-    """The run-to-run noise of ``x`` (see the module's docstring, 1.)."""
+def _steps(x: np.ndarray) -> np.ndarray:
     d = np.diff(x)
-    if len(d) == 0:
-        return 0.0
-    d[np.abs(d) <= 1e-9 * float(np.max(np.abs(x)))] = 0.0  # rounding of a value the fitter returned again
-    mad = float(np.median(np.abs(d - np.median(d))))
-    sigma = MAD_TO_SIGMA * mad / math.sqrt(2.0)
+    if len(d):
+        d[np.abs(d) <= 1e-9 * float(np.max(np.abs(x)))] = 0.0  # rounding of a value the fitter returned again
+    return d
+
+
+def noise_floor(x: np.ndarray, uncertainty: np.ndarray | None = None) -> float:
+    """The least noise ``x`` is judged against: half the smallest step between two runs (a fitter on a
+    grid returns the same value on most clean runs: its resolution), and the fits' own uncertainty
+    (its median) where the store has one."""
+    d = _steps(x)
     moved = np.abs(d[d != 0])
-    if len(moved):
-        sigma = max(sigma, 0.5 * float(moved.min()))
+    floor = 0.5 * float(moved.min()) if len(moved) else 0.0
     if uncertainty is not None:
         u = uncertainty[np.isfinite(uncertainty)]
         if len(u):
-            sigma = max(sigma, float(np.median(u)))
-    return sigma
+            floor = max(floor, float(np.median(u)))
+    return floor
+
+
+def noise_sigma(x: np.ndarray, uncertainty: np.ndarray | None = None) -> float:
+    """The run-to-run noise of ``x`` (the module's docstring, 1.), never below :func:`noise_floor`."""
+    x = np.asarray(x, dtype=float)
+    if len(x) < 3:
+        return noise_floor(x, uncertainty)
+    return max(float(_spread_rows(x[None, :])[0]), noise_floor(x, uncertainty))
 
 
 def median3(x: np.ndarray) -> np.ndarray:
@@ -88,27 +103,78 @@ def median3(x: np.ndarray) -> np.ndarray:
     return y
 
 
-def _rss_step(y: np.ndarray, k: int) -> float:
-    a, b = y[:k], y[k:]
-    return float(np.sum((a - a.mean()) ** 2) + np.sum((b - b.mean()) ** 2))
+@lru_cache(maxsize=512)
+def _regressors(n: int) -> tuple[np.ndarray, np.ndarray, tuple[int, ...], tuple[str, ...]]:
+    """Every candidate change of a series of ``n`` runs as one centred regressor each (a step at ``k``,
+    a ramp from ``k``), their squared norms, onsets and shapes: with an intercept, the residual sum of
+    squares falls by ``(r . y)^2 / |r|^2`` (2 log LR times sigma^2)."""
+    ks = np.arange(MIN_BEFORE, n - MIN_AFTER + 1)
+    i = np.arange(n, dtype=float)
+    step = (i[None, :] >= ks[:, None]).astype(float)
+    ramp = np.maximum(0.0, i[None, :] - ks[:, None] + 1.0)
+    r = np.concatenate([step, ramp])
+    r -= r.mean(axis=1, keepdims=True)
+    return r, np.sum(r * r, axis=1), tuple(int(k) for k in ks) * 2, ("step",) * len(ks) + ("ramp",) * len(ks)
 
 
-def _rss_ramp(y: np.ndarray, k: int) -> float:
-    """A level before ``k``, then a line from that level: y = c + s * max(0, i - k + 1)."""
-    i = np.arange(len(y), dtype=float)
-    h = np.maximum(0.0, i - k + 1)
-    design = np.stack([np.ones_like(h), h], axis=1)
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    r = y - design @ coef
-    return float(r @ r)
+def _statistics(y: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """2 log LR of every candidate change for each row of ``y`` (series through the median, shape
+    (D, n)) against no change, with Gaussian noise of ``sigma`` (per row)."""
+    r, norm, _, _ = _regressors(y.shape[1])
+    yc = y - y.mean(axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sigma[:, None] > 0, (yc @ r.T) ** 2 / norm / (sigma[:, None] ** 2), 0.0)
 
 
+def _raw_spread_rows(x: np.ndarray) -> np.ndarray:
+    d = np.diff(x, axis=1)
+    e = np.sort((d - np.median(d, axis=1, keepdims=True)) ** 2, axis=1)
+    keep = e.shape[1] - max(1, e.shape[1] // 10)
+    return np.sqrt(np.mean(e[:, :keep], axis=1) / 2.0)
+
+
+@lru_cache(maxsize=512)
+def _spread_bias(n: int) -> float:
+    """What :func:`_raw_spread_rows` gives for Gaussian noise of 1 on ``n`` runs (leaving the largest
+    differences out makes it low): measured once per ``n``, the same every time (seed ``n``)."""
+    rng = np.random.default_rng(n)
+    return float(np.mean(_raw_spread_rows(rng.standard_normal((20_000, n)))))
+
+
+def _spread_rows(x: np.ndarray) -> np.ndarray:
+    """The noise of each row of ``x`` from its differences between consecutive runs: their RMS about
+    their median, the largest tenth (at least one: a step's) left out, over sqrt(2), unbiased for
+    Gaussian noise."""
+    return _raw_spread_rows(x) / _spread_bias(x.shape[1])
+
+
+def _median3_rows(x: np.ndarray) -> np.ndarray:
+    y = x.copy()
+    y[:, 1:-1] = np.median(np.stack([x[:, :-2], x[:, 1:-1], x[:, 2:]]), axis=0)
+    y[:, 0] = np.median(np.stack([x[:, 0], y[:, 1], 3 * y[:, 1] - 2 * y[:, 2]]), axis=0)
+    y[:, -1] = np.median(np.stack([x[:, -1], y[:, -2], 3 * y[:, -2] - 2 * y[:, -3]]), axis=0)
+    return y
+
+
+@lru_cache(maxsize=256)
 def threshold(n: int) -> float:
-    """The test's threshold for a series of ``n`` runs: chi-square(1) at ALPHA over the tests made."""
+    """The test's threshold for a series of ``n`` runs: the (1 - ALPHA) quantile of the largest 2 log LR
+    over every candidate when nothing changed. Up to ``CALIBRATED_N`` runs it is measured on
+    ``CALIBRATION_DRAWS`` Gaussian series put through the same procedure (the noise estimated from
+    each, as from a real series: with few runs the estimate is rough and the chi-square too lenient);
+    beyond, the chi-square(1) quantile at ALPHA over the number of candidates (Bonferroni)."""
     from scipy.stats import chi2
 
     tests = 2 * max(1, n - MIN_BEFORE - MIN_AFTER + 1)
-    return float(chi2.isf(ALPHA / tests, 1))
+    bonferroni = float(chi2.isf(ALPHA / tests, 1))
+    if n > CALIBRATED_N:  # the noise from many runs: chi-square, never below the calibrated one
+        return max(bonferroni, threshold(CALIBRATED_N))
+    rng = np.random.default_rng(n)  # the same threshold every time
+    peaks = []
+    for _ in range(CALIBRATION_DRAWS // 4000):
+        x = rng.standard_normal((4000, n))
+        peaks.append(_statistics(_median3_rows(x), _spread_rows(x)).max(axis=1))
+    return max(bonferroni, float(np.quantile(np.concatenate(peaks), 1.0 - ALPHA)))
 
 
 def find_change(x: np.ndarray, uncertainty: np.ndarray | None = None) -> Change | None:
@@ -118,21 +184,14 @@ def find_change(x: np.ndarray, uncertainty: np.ndarray | None = None) -> Change 
     n = len(x)
     if n < MIN_BEFORE + MIN_AFTER:
         return None
-    sigma = noise_sigma(x, uncertainty)
+    sigma = max(float(_spread_rows(x[None, :])[0]), noise_floor(x, uncertainty))
     y = median3(x)
-    rss0 = float(np.sum((y - y.mean()) ** 2))
-    if rss0 == 0.0:
+    if float(np.sum((y - y.mean()) ** 2)) == 0.0 or sigma <= 0.0:
         return None
-    if sigma <= 0.0:  # every run the same but for a change the median kept: no noise to judge it against
-        return None
-    best: tuple[float, int, str] | None = None
-    for k in range(MIN_BEFORE, n - MIN_AFTER + 1):
-        for shape, rss in (("step", _rss_step(y, k)), ("ramp", _rss_ramp(y, k))):
-            stat = (rss0 - rss) / sigma**2
-            if best is None or stat > best[0]:
-                best = (stat, k, shape)
-    assert best is not None
-    stat, k, shape = best
+    stats = _statistics(y[None, :], np.array([sigma]))[0]
+    best = int(np.argmax(stats))
+    _, _, onsets, shapes = _regressors(n)
+    stat, k, shape = float(stats[best]), onsets[best], shapes[best]
     limit = threshold(n)
     if stat <= limit:
         return None

@@ -35,7 +35,7 @@ from functools import lru_cache
 
 import numpy as np
 
-#: the family-wise false-alarm probability of one parameter's series (Bonferroni over its candidate onsets)
+#: the false-alarm probability of one parameter's series, over all its candidate onsets and shapes
 ALPHA = 5e-3
 #: runs the test needs before a candidate onset (the level it leaves) and from it on (the change held)
 MIN_BEFORE = 3

@@ -350,12 +350,13 @@ class AxisControl:
         return handle
 
     def run(self, profile: Profile, *, relative: bool = False, approach: bool = False,
-            record: str | Path | None = None) -> Move:
+            record: str | Path | None = None, meta: dict[str, str] | None = None) -> Move:
         """Run ``profile`` (any profile: library, file, object). Absolute: the axis must stand at its
         start (``approach=True`` moves it there first); ``relative=True``: the profile is shifted to
         start where the axis stands. Refused with one line when it would leave the soft limits. The
         handle's ``trace`` is the run's record (trace v1) once it ended; ``record=folder`` also streams
-        it there as it goes (tracefile/stream.py; the handle's ``path`` once ``wait()`` returned)."""
+        it there as it goes (tracefile/stream.py; the handle's ``path`` once ``wait()`` returned). ``meta``:
+        more header lines for its trace (``machine``, ``started_utc``: drivectl health run)."""
         self._require_enabled("run")
         rt, loop = self._rt, self._m.loop
         start = float(profile.sample(np.zeros(1))[0][0])
@@ -382,7 +383,7 @@ class AxisControl:
         preview = run_preview(rt.ch.controller, profile, t, offset)
         name = profile_name(profile)
         handle = Move(loop, self.name, "run", float(refs[0][-1]))
-        meta = {"profile": name, "relative_offset_m": format_value(offset)}
+        meta = {"profile": name, "relative_offset_m": format_value(offset), **(meta or {})}
         if record is not None:
             from drivectl.tracefile.stream import TraceWriter
 

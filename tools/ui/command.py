@@ -42,6 +42,8 @@ def add_ui_parser(sub: Any) -> None:
                    "wall on a real bus)")
     s.add_argument("--sim", action="store_true", help="SimAxis (the plants with no bus)")
     s.add_argument("--out", default="traces", metavar="DIR", help="the trace folder: scope saves, explain's output")
+    s.add_argument("--store", metavar="DIR", help="the Health page's store (default: [health] store in the "
+                   "configuration, else the user's data folder; docs/health.md)")
 
 
 def check_listen(address: str, port: int) -> tuple[str, bool]:
@@ -181,7 +183,7 @@ def cmd_ui(args: Any) -> int:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
     machine = connect(cfg, axes=axes, clock=args.clock, sim=args.sim, fault_dir=out)
-    console = Console(machine, Path(out))
+    console = Console(machine, Path(out), health_store=Path(args.store).expanduser() if args.store else None)
     web = WebConsole(console)
     server = make_server(web)
     states: dict[str, str] = {}

@@ -48,9 +48,7 @@ def die_with_parent(parent: int) -> str:
     except (OSError, AttributeError) as exc:
         return f"the control pipe's end only (prctl refused: {exc})"
     if os.getppid() != parent:  # the parent ended before the prctl took hold
-        sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
+        os._exit(0)
     return "PR_SET_PDEATHSIG (SIGTERM) and the control pipe's end"
 
 
@@ -73,6 +71,7 @@ class Served:
         self.m = machine
         self.granted = granted
         self._handles: dict[int, Any] = {}
+        self._ids: dict[int, int] = {}  # id() of a kept handle -> its number
         self._next = 0
         self._lock = threading.Lock()
 
@@ -85,9 +84,11 @@ class Served:
             return [self._keep(o) for o in obj]
         if isinstance(obj, Move | Capture):
             with self._lock:
-                self._next += 1
-                self._handles[self._next] = obj
-                hid = self._next
+                hid = self._ids.get(id(obj))  # the same handle again (a jog's renewal): the same number
+                if hid is None:
+                    self._next += 1
+                    hid = self._ids[id(obj)] = self._next
+                    self._handles[hid] = obj
             if isinstance(obj, Move):
                 return ("move", hid, obj.axis, obj.kind, obj.target, self.move_state(hid))
             return ("capture", hid, obj.axis, obj.channels, obj.trigger, obj.pre, obj.post, obj.dt, obj.meta)
@@ -96,7 +97,9 @@ class Served:
     def forget(self, ids: list[int]) -> None:
         with self._lock:
             for i in ids:
-                self._handles.pop(i, None)
+                obj = self._handles.pop(i, None)
+                if obj is not None:
+                    self._ids.pop(id(obj), None)
 
     # -- the machine and its axes --------------------------------------------------------------------------
     def info(self) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import ctypes
 import gc
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -231,6 +232,7 @@ def main() -> int:
     closer.start()
     closer.join(DEATH_CLOSE_S)
     machine.shared.unlink()
+    shutil.rmtree(os.path.dirname(spec["address"]), ignore_errors=True)  # the socket's folder (a killed parent's too)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)

@@ -59,7 +59,7 @@ class _Segment:
                                       np.ndarray((size,), dtype=np.int64, buffer=shm.buf, offset=s))
 
     def close(self) -> None:
-        self.block = None  # type: ignore[assignment]
+        self.block = self.block.copy()  # the last state stays readable (an axis's power after close, as in-process)
         self.ring_arrays = {}
         try:
             self.shm.close()

@@ -147,6 +147,9 @@ class Served:
     def latency(self) -> Any:
         return self.m.loop.latency
 
+    def faults(self) -> list[Any]:
+        return list(self.m.loop.faults)
+
     # -- handles: a move, a capture ------------------------------------------------------------------------
     def move_state(self, hid: int) -> dict[str, Any]:
         h = self._handles[hid]

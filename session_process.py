@@ -418,6 +418,9 @@ class ProcessMove:
 class ProcessCapture:
     """A capture armed on one axis (session's Capture): ``wait()`` gives its trace, in one block."""
 
+    #: draw the PNG in a child process: no need, the loop is not in this one (a caller may still ask)
+    plot_apart = False
+
     def __init__(self, machine: ProcessMachine, hid: int, axis: str, channels: tuple[str, ...], trigger: Trigger,
                  pre: int, post: int, dt: float, meta: dict[str, str]):
         self._m = machine
@@ -479,6 +482,7 @@ class ProcessCapture:
     def write(self, path: str | Path, plot: bool = True) -> list[Path]:
         """The trace and its PNG, written here (the loop is not in this process: drawn in place)."""
         self.result()
+        self._local.plot_apart = self.plot_apart  # type: ignore[union-attr]
         return self._local.write(path, plot)  # type: ignore[union-attr]
 
     def _trigger_text(self) -> str:
@@ -599,6 +603,12 @@ class LoopView:
     def latency(self) -> Any:
         """The loop's LatencyRecord, as of now (a copy from the loop's process)."""
         return self._m._call("latency")
+
+    @property
+    def faults(self) -> list[Any]:
+        """The faults the loop met (kind, axis, detail, safe state; ``at``: CLOCK_MONOTONIC, shared by the
+        processes), a copy from the loop's process."""
+        return self._m._call("faults")
 
     @property
     def running(self) -> bool:

@@ -30,7 +30,7 @@ from multiprocessing.managers import BaseManager
 from typing import Any
 
 _PR_SET_PDEATHSIG = 1
-_MCL_CURRENT, _MCL_FUTURE = 1, 2
+_MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 #: how long the close at the parent's death may take before the process exits regardless (s)
 DEATH_CLOSE_S = 3.0
 
@@ -54,14 +54,19 @@ def die_with_parent(parent: int) -> str:
 
 
 def lock_memory() -> str:
-    """mlockall(MCL_CURRENT | MCL_FUTURE): no page of this process is paged out under the loop."""
+    """mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT): no page of this process that was touched is paged
+    out under the loop. On fault: a page is locked when first used, so the threads' reserved stacks and
+    the allocators' reserves cost nothing (locked whole, they made the process 570 MB resident)."""
+    libc = _libc()
     try:
-        if _libc().mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
-            err = ctypes.get_errno()
-            raise OSError(err, os.strerror(err))
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT) == 0:
+            return "the loop's process locked in memory (mlockall, current and future, each page from its first use)"
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:  # a kernel before 4.4: no MCL_ONFAULT
+            return "all of the loop's process locked in memory (mlockall, current and future)"
+        err = ctypes.get_errno()
+        raise OSError(err, os.strerror(err))
     except (OSError, AttributeError) as exc:
         return f"not locked (mlockall refused: {exc}); raise RLIMIT_MEMLOCK or grant CAP_IPC_LOCK"
-    return "all of the loop's process locked in memory (mlockall, current and future)"
 
 
 class Served:

@@ -625,6 +625,12 @@ class LoopView:
 
 
 # -- starting the loop's process ------------------------------------------------------------------------------
+def _child_env() -> dict[str, str]:
+    """This process's environment, and one BLAS thread: the loop's cycle products are a few elements (host.py
+    limits BLAS to the loop's thread; here no worker is even started)."""
+    return {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def connect_process(cfg: Any, names: list[str], opts: dict[str, Any]) -> ProcessMachine:
     """Start the loop's process for ``cfg`` and return the user's side of it (session.connect's)."""
     opts = dict(opts)
@@ -639,7 +645,7 @@ def connect_process(cfg: Any, names: list[str], opts: dict[str, Any]) -> Process
     rep_r, rep_w = os.pipe()
     try:
         proc = subprocess.Popen([sys.executable, "-m", "drivectl.session_child", str(ctl_r), str(rep_w)],
-                                pass_fds=(ctl_r, rep_w), stdin=subprocess.DEVNULL,
+                                pass_fds=(ctl_r, rep_w), stdin=subprocess.DEVNULL, env=_child_env(),
                                 start_new_session=True)  # a Ctrl-C at the terminal is this process's to handle
     except BaseException:
         for fd in (ctl_r, ctl_w, rep_r, rep_w):

@@ -203,7 +203,11 @@ def main() -> int:
         ended.set()
 
     signal.signal(signal.SIGTERM, on_term)
-    from drivectl.session import open_here
+    import warnings
+
+    from drivectl.session import TimingWarning, open_here
+
+    warnings.simplefilter("ignore", TimingWarning)  # the user's process warns, with enable's text (session_process)
 
     try:
         machine = open_here(spec["config"], spec["names"], shared=True, **spec["opts"])

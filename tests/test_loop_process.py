@@ -172,3 +172,39 @@ def test_a_parent_killed_by_sigkill_leaves_no_loop_process(tmp_path):
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_the_shell_through_the_loop_process_says_what_it_says_in_process(monkeypatch, capsys):
+    import io
+
+    from drivectl.tools.cli.main import main
+
+    script = "enable x\nmove x 2mm\njog x 5mm/s 0.2s\nmove-by x -1mm\nstatus x\nwait 0.1s\nexit\n"
+    said = {}
+    for where in ("thread", "process"):
+        monkeypatch.setattr(sys, "stdin", io.StringIO(script))
+        rc = main(["shell", "--axis", "x", "--loop", where])
+        out = capsys.readouterr()
+        assert rc == 0, out.err
+        said[where] = [ln for ln in out.out.splitlines() if ln]
+        assert "closed: x Switch On Disabled" in out.err
+    assert said["thread"] == said["process"] and len(said["process"]) == 6
+
+
+def test_the_scope_and_the_live_view_read_the_rings_in_shared_memory(tmp_path):
+    from drivectl.tools.cli.live import sample
+    from drivectl.tools.ui.stream import ScopeFeed
+
+    got = {}
+    for where in ("thread", "process"):
+        with drivectl.connect(config(), axes=["x"], fault_dir=tmp_path, loop=where) as m:
+            feed = ScopeFeed(m)
+            feed.subscribe("x", ["reference", "position", "effort"], 1.0)
+            m.axes["x"].enable()
+            m.axes["x"].move_to(0.002)
+            m.advance(0.3)
+            first = feed.poll()
+            m.advance(0.05)
+            got[where] = (first, feed.poll(), sample(m, ("position", "following_error", "effort")))
+    assert got["thread"] == got["process"]
+    assert len(got["process"][1]["t"]) == 50  # only what came since the last poll

@@ -188,7 +188,7 @@ def test_the_shell_through_the_loop_process_says_what_it_says_in_process(monkeyp
         assert rc == 0, out.err
         said[where] = [ln for ln in out.out.splitlines() if ln]
         assert "closed: x Switch On Disabled" in out.err
-    assert said["thread"] == said["process"] and len(said["process"]) == 6
+    assert said["thread"] == said["process"] and len(said["process"]) == 7  # status: the axis, the loop
 
 
 def test_the_scope_and_the_live_view_read_the_rings_in_shared_memory(tmp_path):

@@ -100,6 +100,10 @@ class Served:
             return ("capture", hid, obj.axis, obj.channels, obj.trigger, obj.pre, obj.post, obj.dt, obj.meta)
         return obj
 
+    def kept(self) -> int:
+        """How many handles are kept for the user's side (a long session's handles must not pile up)."""
+        return len(self._handles)
+
     def forget(self, ids: list[int]) -> None:
         with self._lock:
             for i in ids:

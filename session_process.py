@@ -33,6 +33,7 @@ import tempfile
 import threading
 import time
 import warnings
+import weakref
 from multiprocessing.connection import Connection
 from multiprocessing.managers import BaseManager
 from pathlib import Path
@@ -75,7 +76,8 @@ class ProcessMachine:
         self._folder = folder
         self._info = info
         self._forget: list[int] = []
-        self._moves: dict[int, ProcessMove] = {}
+        #: the handles this side holds (weakly: one dropped here is forgotten there with the next call)
+        self._moves: weakref.WeakValueDictionary[int, ProcessMove] = weakref.WeakValueDictionary()
         self._closed = False
         self._slow: dict[str, Any] | None = None
         self._slow_key: Any = None

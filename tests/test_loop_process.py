@@ -108,6 +108,19 @@ def test_faults_and_refusals_in_the_loop_process_arrive_with_their_messages(tmp_
     assert said["thread"] == said["process"]
 
 
+def test_handles_dropped_here_are_forgotten_there(tmp_path):
+    import gc
+
+    with drivectl.connect(config(), axes=["x"], fault_dir=tmp_path, loop="process") as m:
+        x = m.axes["x"]
+        x.enable()
+        for i in range(20):
+            x.move_to(0.001 * (i % 3)).wait(5)
+        gc.collect()
+        kept = x.stop()  # the next call tells the loop's process which handles this side dropped
+        assert m._call("kept") == 1 and kept.wait(5).status == "done"
+
+
 def test_the_wall_clock_loop_process_moves_an_axis_and_says_what_it_was_granted(tmp_path, monkeypatch):
     """Outcome only, no timing asserted (a 50 ms RPDO deadline, as tests/test_session.py's threaded one)."""
     from drivectl.machine import live_status

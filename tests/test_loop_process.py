@@ -221,3 +221,18 @@ def test_the_scope_and_the_live_view_read_the_rings_in_shared_memory(tmp_path):
             got[where] = (first, feed.poll(), sample(m, ("position", "following_error", "effort")))
     assert got["thread"] == got["process"]
     assert len(got["process"][1]["t"]) == 50  # only what came since the last poll
+
+
+def test_a_loop_process_that_dies_is_said_so_and_the_close_does_not_hang(tmp_path, capsys):
+    import signal
+
+    from drivectl.session_process import LoopGone
+
+    m = drivectl.connect(config(), axes=["x"], fault_dir=tmp_path, loop="process")
+    x = m.axes["x"]
+    os.kill(m.pid, signal.SIGKILL)
+    m._proc.wait(30)
+    with pytest.raises(LoopGone, match=r"the servo loop's process \(pid \d+\) ended \(exit code -9\); the drives' own"):
+        x.enable()
+    assert m.close() == {}
+    assert "ended (exit code -9)" in capsys.readouterr().err

@@ -27,6 +27,7 @@ from drivectl.errors import InputError
 DEFAULT_CONFIG_TOML = """\
 # drivectl machine configuration (embedded default: emulated drives, no hardware)
 cycle_s = 0.001                 # servo cycle = SYNC period
+# loop = "process"              # the wall-clock servo loop: in a process of its own, or "thread" of the program's
 
 [bus]
 interface = "virtual"           # any python-can interface: virtual, slcan, socketcand, socketcan, pcan, kvaser, ...
@@ -133,6 +134,9 @@ fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines i
 # profile = "fingerprint"       # drivectl health run's profile (library name, or a TOML file beside this one)
 """
 
+
+#: where a wall-clock servo loop may run (session.connect's ``loop``, the configuration's ``loop``)
+LOOPS = ("process", "thread")
 
 #: the largest position count of the drive's INTEGER32 0x6064 / 0x607A
 MAX_COUNTS = 2**31 - 1
@@ -277,6 +281,8 @@ class MachineConfig:
     health_store: str | None = None
     #: [health.limits]: "effect.param" -> SI value, for every axis (tools/health/settings.py)
     health_limits: dict[str, float] = field(default_factory=dict)
+    #: where the wall-clock servo loop runs: "process" (its own) or "thread" (the program's); None: the default
+    loop: str | None = None
 
     def health_limits_of(self, axis: str) -> dict[str, float]:
         """The health limits of ``axis``: the documented defaults, [health.limits], [axes.NAME.health.limits]."""
@@ -330,9 +336,11 @@ def _string(src: str, key: str, value: Any) -> str:
 
 
 def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
-    unknown = set(data) - {"cycle_s", "axes", "bus", "checks", "health"}
+    unknown = set(data) - {"cycle_s", "loop", "axes", "bus", "checks", "health"}
     if unknown:
-        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks, health)")
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, loop, bus, axes, checks, "
+                          "health)")
+    loop = _choice(src, "loop", data["loop"], LOOPS) if "loop" in data else None
     checks = _checks(data.get("checks", {}), src)
     health_store, health_limits = _health(data.get("health", {}), src)
     bus_raw = data.get("bus", {})
@@ -442,7 +450,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_limits)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_limits, loop)
 
 
 def _health(raw: Any, src: str) -> tuple[str | None, dict[str, float]]:

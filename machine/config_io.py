@@ -59,6 +59,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     doc = tomlkit.document()
     doc.add(tomlkit.comment(f"resolved configuration from {cfg.source}"))
     doc.add("cycle_s", cfg.cycle_s)
+    if cfg.loop is not None:  # where the wall-clock loop runs (session.connect's loop)
+        doc.add("loop", cfg.loop)
     bus = tomlkit.table()
     b = cfg.bus
     bus.add("interface", b.interface)

@@ -350,12 +350,13 @@ class AxisControl:
         return handle
 
     def run(self, profile: Profile, *, relative: bool = False, approach: bool = False,
-            record: str | Path | None = None) -> Move:
+            record: str | Path | None = None, meta: dict[str, str] | None = None) -> Move:
         """Run ``profile`` (any profile: library, file, object). Absolute: the axis must stand at its
         start (``approach=True`` moves it there first); ``relative=True``: the profile is shifted to
         start where the axis stands. Refused with one line when it would leave the soft limits. The
         handle's ``trace`` is the run's record (trace v1) once it ended; ``record=folder`` also streams
-        it there as it goes (tracefile/stream.py; the handle's ``path`` once ``wait()`` returned)."""
+        it there as it goes (tracefile/stream.py; the handle's ``path`` once ``wait()`` returned). ``meta``:
+        more header lines for its trace (``machine``, ``started_utc``: drivectl health run)."""
         self._require_enabled("run")
         rt, loop = self._rt, self._m.loop
         start = float(profile.sample(np.zeros(1))[0][0])
@@ -382,7 +383,7 @@ class AxisControl:
         preview = run_preview(rt.ch.controller, profile, t, offset)
         name = profile_name(profile)
         handle = Move(loop, self.name, "run", float(refs[0][-1]))
-        meta = {"profile": name, "relative_offset_m": format_value(offset)}
+        meta = {"profile": name, "relative_offset_m": format_value(offset), **(meta or {})}
         if record is not None:
             from drivectl.tracefile.stream import TraceWriter
 
@@ -505,6 +506,7 @@ class Machine:
         loop.wait_until = self.run_until
         self._streamed: list[Move] = []  # runs recording to files: closed at the latest on close()
         self._published: live_status.Publisher | None = None
+        self.shared: Any = None  # the loop's own process: its SharedState (controllers/runtime/shared.py)
 
     def _bus(self, fn: Any, *args: Any) -> Any:
         # the in-process bus delivers frames on the sending thread: one thread on it at a time
@@ -609,6 +611,7 @@ def connect(
     effects: Sequence[tuple[str, dict[str, float]]] = (),
     noise: float = 0.0,
     seed: int = 0,
+    loop: str | None = None,
 ) -> Machine:
     """Connect to the machine of ``config`` (a file, a MachineConfig, or None: $DRIVECTL_CONFIG, else
     the embedded emulated machine) and start its resident loop.
@@ -624,40 +627,76 @@ def connect(
     and ``noise`` (std of a Gaussian force noise, effort unit; ``seed``) are what the emulated drives play
     beyond their plant, as ``drivectl trace --effect/--noise``: each controller believes its axis's
     ``model`` (else its ``plant``) without them.
-    """
-    from drivectl.controllers.registry import make_controller
-    from drivectl.machine.build import model_specs, open_machine, plant_specs
-    from drivectl.machine.config import MachineConfig, load_config
-    from drivectl.plant_emulator.faults import parse_fault
 
+    ``loop``: where the servo loop runs: ``"process"``, a child process that does nothing else (the bus,
+    the drives' objects, the controllers and the rings; this process keeps the same API through
+    session_process.py), or ``"thread"``, a thread of this process. Default: the configuration's ``loop``
+    on the wall clock, else ``"process"`` there; lockstep always ``"thread"`` unless asked (docs/timing.md).
+    """
+    from drivectl.machine.config import LOOPS, MachineConfig, load_config
+
+    if loop is not None and loop not in LOOPS:
+        raise ValueError(f"connect: loop: expected one of {', '.join(LOOPS)}, got {loop!r}")
     cfg = config if isinstance(config, MachineConfig) else load_config(config)
     names = list(axes) if axes is not None else list(cfg.axes)
     for n in names:
         cfg.axis(n)
+    if clock is None:
+        clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
+    where = loop or ((cfg.loop or "process") if clock == "wall" else "thread")
+    opts = dict(clock=clock, sim=sim, start=start, faults=faults, fault_dir=fault_dir, stall_s=stall_s, ring_s=ring_s,
+                cpu=cpu, realtime=realtime, gc_control=gc_control, gil_switch=gil_switch, effects=effects, noise=noise,
+                seed=seed)
+    if where == "process":
+        from drivectl.session_process import connect_process
+
+        return connect_process(cfg, names, opts)
+    return open_here(cfg, names, **opts)  # type: ignore[arg-type]
+
+
+def open_here(cfg: Any, names: list[str], *, clock: str, sim: bool, start: dict[str, float] | None,
+              faults: Sequence[str] | None, fault_dir: str | Path | None, stall_s: float | None, ring_s: float,
+              cpu: int | None, realtime: bool, gc_control: bool, gil_switch: bool,
+              effects: Sequence[tuple[str, dict[str, float]]], noise: float, seed: int,
+              shared: bool = False) -> Machine:
+    """:func:`connect` in this process (the loop a thread of it). ``shared``: the loop publishes its status
+    and keeps its rings in shared memory, and collects no garbage while an axis is enabled (the loop's own
+    process, session_child.py)."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.machine.build import model_specs, open_machine, plant_specs
+    from drivectl.plant_emulator.faults import parse_fault
     specs = plant_specs(cfg, names, effects=effects)
     models = model_specs(cfg, names, plants=specs)
     controllers = {n: make_controller(cfg.axis(n).controller, cfg.cycle_s, cfg.axis(n).controller_settings,
                                       plant=models[n], axis=n, source=f"{cfg.source}: axes.{n}.controller_settings")
                    for n in names}
     fault_specs = [parse_fault(f) for f in faults] if faults else None
-    if clock is None:
-        clock = "lockstep" if (sim or cfg.bus.interface == "virtual") else "wall"
     hw = open_machine(cfg, names, sim=sim, start=start, faults=fault_specs, paced=clock == "wall",
                       lockstep=clock == "lockstep", effects=effects,
                       noise=noise, seed=seed)
     try:
         channels = []
         motion = {}
+        state = None
         for n in names:
             ac = cfg.axis(n)
             axis = hw.axes[n]
             limits = ac.limits_with(axis.drive_limits()) if ac.limits_from_drive else ac.limits
             channels.append(Channel(axis, controllers[n], None, limits, {"plant": specs[n].name}))  # type: ignore[arg-type]
             motion[n] = getattr(ac, "motion", None)
+        if shared:
+            from drivectl.controllers.runtime.shared import SharedState
+
+            state = SharedState(names, max(2, int(round(ring_s / hw.axes[names[0]].dt))))
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
                          deadlines={n: d.seconds for n, d in hw.deadlines.items()}, ring_s=ring_s,
-                         fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch)
+                         fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch,
+                         ring=state.ring if state else None, collect_while_enabled=not shared)
         machine = Machine(hw, loop, cfg)
+        if state is not None:
+            state.attach(loop)
+            loop.on_cycle = state.publish
+            machine.shared = state
         loop.start()
         if clock == "wall":  # `drivectl status` in another process shows this loop's timing (machine/live_status.py)
             machine._published = live_status.Publisher(live_status.path_for(cfg.bus),
@@ -665,5 +704,7 @@ def connect(
             machine._published.start()
     except BaseException:
         hw.close()
+        if state is not None:
+            state.unlink()
         raise
     return machine

@@ -23,7 +23,11 @@ deadline (the axis's own, from its physics: docs/timing.md; x 17 ms) stops the a
 column counts the faults of each run (the loop goes on cycling, so its deadline figures still cover the
 whole run). A run with a stop does not meet the targets.
 
-    python bench/session.py [--seconds 60] [--measure-seconds 20] [--json]
+    python bench/session.py [--seconds 60] [--measure-seconds 20] [--loop process|thread] [--json]
+
+``--loop``: where the loop runs (``connect(loop=...)``; default process, the wall clock's default): in its
+own process the program's plotting and the loop share no interpreter (issue 39 point 4); ``thread`` is the
+loop a thread of this process, as before.
 
 --json prints exactly {"hold_missed_fraction", "hold_worst_late_ms", "move_settle_error_um",
 "jog_stop_ms", "ui_busy_missed_fraction"}. Target: missed deadlines below 0.5 % on a quiet machine in
@@ -47,11 +51,13 @@ matplotlib.use("Agg")
 
 import drivectl  # noqa: E402
 
+LOOP = {"loop": "process"}  # --loop: every connect of this bench
+
 
 def _held(seconds: float, *, busy: bool, out: Path, plot_apart: bool = True, **kw) -> dict:
     """One run: enable x, hold ``seconds`` of wall time (plotting a capture every second when ``busy``);
     the loop's counters over the held part."""
-    with drivectl.connect(axes=["x"], clock="wall", fault_dir=None, **kw) as m:
+    with drivectl.connect(axes=["x"], clock="wall", fault_dir=None, **LOOP, **kw) as m:
         x = m.axes["x"]
         x.enable()
         st0 = m.status()
@@ -86,7 +92,7 @@ def _move_and_jog() -> tuple[float, float]:
     cfg = load_config()
     cfg = dataclasses.replace(cfg, axes={**cfg.axes, "x": dataclasses.replace(cfg.axes["x"], controller="mbc",
                                                                              controller_settings={})})
-    with drivectl.connect(cfg, axes=["x"], clock="wall", fault_dir=None) as m:
+    with drivectl.connect(cfg, axes=["x"], clock="wall", fault_dir=None, **LOOP) as m:
         x = m.axes["x"]
         x.enable()
         h = x.move_to(0.010).wait(10.0)
@@ -115,8 +121,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0, help="length of the hold and ui-busy runs (s)")
     ap.add_argument("--measure-seconds", type=float, default=20.0, help="length of each measure's run (s)")
+    ap.add_argument("--loop", choices=("process", "thread"), default="process",
+                    help="the loop in its own process (default) or a thread of this one")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    LOOP["loop"] = args.loop
     if not (args.seconds > 0 and args.measure_seconds > 0):
         print("session: --seconds and --measure-seconds must be > 0", file=sys.stderr)
         return 2
@@ -142,7 +151,8 @@ def main() -> int:
     if args.json:
         print(json.dumps(result))
         return 0
-    print("resident loop, axis x, 1 kHz wall clock; each measure's row is a ui-busy run with that measure off")
+    print(f"resident loop ({args.loop}), axis x, 1 kHz wall clock; each measure's row is a ui-busy run with that "
+          "measure off")
     head = f"{'run':<26} {'cycles':>8} {'missed':>7} {'missed %':>9} {'worst late ms':>14} {'plots':>6} {'stops':>6}"
     print(head)
     print("-" * len(head))

@@ -20,7 +20,10 @@ resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "f
 "hogs": how many CPU-bound processes ran beside it, `--hog N`, default 1).
 Target: 0 faults over 30 minutes, both ways.
 
-    python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002] [--minutes 30] [--json]
+    python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002] [--minutes 30] [--loop process|thread] [--json]
+
+``--loop``: where the master's loop runs (``connect(loop=...)``, default process: issue 39 point 1); the
+0.5 s SIGSTOP then stops the loop's process. The line on stderr names it.
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ def _emulator(tmp: Path, config: Path):
 
 
 def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
-              cycle_s: float = 0.001, hogs: int = 1) -> dict:
+              cycle_s: float = 0.001, hogs: int = 1, loop: str = "process") -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
     import dataclasses
     import multiprocessing
@@ -86,7 +89,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
         burner.start()
     polls, done, failed, fault_lines, refusals = [0], 0, 0, [], [0]
     try:
-        with drivectl.connect(cfg, clock="wall", fault_dir=tmp) as m:
+        with drivectl.connect(cfg, clock="wall", fault_dir=tmp, loop=loop) as m:
             names = list(m.axes)
             for ax in m.axes.values():
                 ax.enable()
@@ -165,6 +168,7 @@ def _stall(m, seconds: float) -> dict:
     from drivectl.driver.axis import AxisError
 
     loop = m.loop
+    pid = getattr(m, "pid", os.getpid())  # the loop's own process, else this one
     for ax in m.axes.values():
         if ax.state != "servo":
             try:
@@ -178,7 +182,7 @@ def _stall(m, seconds: float) -> dict:
     # processes): the fault's own detection time, against that, is how long the loop took to catch the stall
     helper = subprocess.Popen([sys.executable, "-c", (
         "import os, signal, sys, time\n"
-        f"pid, s = {os.getpid()}, {seconds}\n"
+        f"pid, s = {pid}, {seconds}\n"
         "time.sleep(0.2); os.kill(pid, signal.SIGSTOP); time.sleep(s)\n"
         "t = time.monotonic(); os.kill(pid, signal.SIGCONT); print(t)")], stdout=subprocess.PIPE, text=True)
     resumed = float(helper.communicate()[0])
@@ -222,6 +226,8 @@ def main() -> None:
     ap.add_argument("--cycle-s", type=float, default=0.001,
                     help="--wall: the servo cycle (default 0.001; longer: the way out where a host cannot keep it)")
     ap.add_argument("--hog", type=int, default=1, help="--wall: CPU-bound processes beside the soak (default 1)")
+    ap.add_argument("--loop", choices=("process", "thread"), default="process",
+                    help="--wall: the loop in its own process (default) or a thread of this one")
     args = ap.parse_args()
     if args.wall:
         if args.hog < 0:
@@ -229,16 +235,17 @@ def main() -> None:
         if not (0.0005 <= args.cycle_s <= 0.01):
             ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
         r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s,
-                      hogs=args.hog)
+                      hogs=args.hog, loop=args.loop)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
             for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
                 print(f"  {line}", file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
-            print(loop_line(r["_status"]), file=sys.stderr)
+            print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
-        print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}: "
+        print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}, the loop in "
+              f"{'its own process' if args.loop == 'process' else 'a thread of the program'}: "
               f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled "
               f"beside {args.hog} CPU-bound process(es); "
               "load average "

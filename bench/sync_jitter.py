@@ -83,7 +83,8 @@ def measure(channel: str, cycle_s: float, seconds: float, sync: str) -> dict:
             stamps: list[float] = []
             stop = threading.Event()
             rec = threading.Thread(target=_record, args=(channel, stop, stamps), daemon=True)
-            with drivectl.connect(str(cfg), axes=["x"], clock="wall", fault_dir=None) as m:
+            with drivectl.connect(str(cfg), axes=["x"], clock="wall", fault_dir=None,
+                                  loop="thread") as m:  # it reads the axis object: in this process
                 clock = m.axes["x"]._rt.ch.axis.clock
                 time.sleep(0.5)  # the loop settles
                 rec.start()

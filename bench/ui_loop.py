@@ -13,7 +13,10 @@ Columns: cycles, missed deadlines (fraction), worst lateness (ms, since the sess
 and the lateness percentiles of the counted part (ms, from the loop's histogram, ``status()["latency_ms"]``).
 The figures are wall-clock measurements: quote the machine's load with them (printed).
 
-    python bench/ui_loop.py [--seconds 30] [--json]
+    python bench/ui_loop.py [--seconds 30] [--loop process|thread] [--json]
+
+``--loop``: where the loop runs (default process: the console, its server and the browser's requests in
+this process, the loop in its own; ``thread``: the loop a thread of this process).
 
 --json prints exactly {"no_client_missed_fraction", "ws_client_missed_fraction", "browser_missed_fraction",
 "no_client_worst_late_ms", "ws_client_worst_late_ms", "browser_worst_late_ms"} (null for a row that could
@@ -35,7 +38,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 
-def _row(seconds: float, client: str, tmp: Path) -> dict | None:
+def _row(seconds: float, client: str, tmp: Path, loop: str = "process") -> dict | None:
     import drivectl
     from drivectl.tools.ui.command import bind, start_in_thread, url_of
     from drivectl.tools.ui.console import Console
@@ -47,7 +50,7 @@ def _row(seconds: float, client: str, tmp: Path) -> dict | None:
         if not chrome or not chromedriver:
             print("browser row skipped: no chromium + chromedriver here", file=sys.stderr)
             return None
-    with drivectl.connect(axes=["x"], clock="wall", fault_dir=None) as m:
+    with drivectl.connect(axes=["x"], clock="wall", fault_dir=None, loop=loop) as m:
         console = Console(m, tmp).start()
         web = WebConsole(console)
         sock = bind("127.0.0.1", 0)
@@ -115,12 +118,14 @@ def _ws_client(url: str, stop: threading.Event) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=30.0, help="counted seconds per row (default 30)")
+    ap.add_argument("--loop", choices=("process", "thread"), default="process",
+                    help="the loop in its own process (default) or a thread of this one")
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     args = ap.parse_args()
     rows = {}
     with tempfile.TemporaryDirectory() as d:
         for name, client in (("no_client", "none"), ("ws_client", "ws"), ("browser", "browser")):
-            rows[name] = _row(args.seconds, client, Path(d))
+            rows[name] = _row(args.seconds, client, Path(d), args.loop)
     load = os.getloadavg()
     if args.json:
         out = {}
@@ -132,7 +137,7 @@ def main() -> None:
             out[f"{name}_worst_late_ms"] = None if r is None else r["worst_late_ms"]
         print(json.dumps(out))
         return
-    print(f"loop at 1 kHz on the wall clock, x holding, {args.seconds:g} s per row; load average "
+    print(f"loop ({args.loop}) at 1 kHz on the wall clock, x holding, {args.seconds:g} s per row; load average "
           f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (other jobs disturb these figures)")
     print(f"{'row':<10} {'cycles':>8} {'missed %':>9} {'worst ms':>9} {'stops':>6}  lateness percentiles (ms)")
     for name, r in rows.items():

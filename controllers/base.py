@@ -251,6 +251,12 @@ class Controller(ABC):
     def use_preview(self, preview: Any) -> None:  # noqa: B027 - optional hook, no-op by default
         """Install a :meth:`preview`: the next ``step`` is the run's cycle 0. Default: nothing."""
 
+    def linear_form(self) -> Any:
+        """The law's linear form about a held reference (controllers/linear_form.py ``LinearForm``: a state
+        space from [position, velocity] to the effort), or None: a nonlinear law (sliding mode, time-delay
+        estimation) has none, and its measured margins are describing-function estimates. Default: None."""
+        return None
+
     def note_applied(self, effort: Any) -> None:
         """Told, after ``step``, the effort actually applied this cycle when something outside the law added
         to it (a learned feedforward, controllers/learning.py). A law that remembers its own last effort

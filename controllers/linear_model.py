@@ -146,7 +146,16 @@ class LinearModel:
 
     # -- flatness ----------------------------------------------------------------------------------
     def polynomials(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(Q, P_t, Delta) as coefficient arrays, lowest power first: x_t = Q Z, x_0 = P_t Z, u = Delta Z."""
+        """(Q, P_t, Delta) as coefficient arrays, lowest power first: x_t = Q Z, x_0 = P_t Z, u = Delta Z.
+        Kept per parameter set: a controller's cycle asks for them, and they change only with the model."""
+        key = (self.masses, self.viscous, self.stiffness, self.damping, self.table_stiffness)
+        kept = self.__dict__.get("_polynomials")
+        if kept is None or kept[0] != key:
+            kept = (key, self._polynomials_of_model())
+            self.__dict__["_polynomials"] = kept
+        return kept[1]
+
+    def _polynomials_of_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         kt = self.table_stiffness
         if self.n_bodies == 1:
             m, c = self.masses[0], self.viscous[0]

@@ -249,6 +249,7 @@ class Mbc(Controller):
         self._hold_gain = float(d.K[n - 2]) * self.dt / float(s.standstill_s)
         self._design_for = key
         self._rest = (math.nan, 0.0, 0.0)
+        self._row_map: tuple[float, float, float, float] | None = None  # made at the first row that needs it
 
     def reset(self) -> None:
         self._ensure_design()
@@ -324,17 +325,31 @@ class Mbc(Controller):
         rest = reference.velocity == 0.0 and reference.acceleration == 0.0 and reference.jerk == 0.0
         if rest and reference.position == self._rest[0]:
             return self._rest[1], self._rest[2]  # a hold: the same row every cycle, computed once
-        dt = self.dt
-        ext = _Extrapolated(reference)
-        delay = self.model.extra_delay / dt
-        s = self.settings
-        tt = dt * (np.array([1.0, 2.0]) + delay)
-        uff = float(self.model.held_effort(ext, tt, self.spread)[0]) if s.feedforward else 0.0
-        fk = float(self.model.held_known_forces(ext, tt, self.spread)[0]) if s.friction_ff else 0.0
-        xref = self.model.reference_states(ext, np.array([dt, 2 * dt]), self.spread)[0]
+        w = self._row_map if self._row_map is not None else self._make_row_map()
+        lin = (w[0] * reference.position + w[1] * reference.velocity + w[2] * reference.acceleration
+               + w[3] * reference.jerk)
+        fk = 0.0
+        if self.settings.friction_ff and self.model.has_known_forces:
+            fk = float(self.model.held_known_forces(_Extrapolated(reference), self._row_tt, self.spread)[0])
         if rest:
-            self._rest = (reference.position, uff + float(xref @ self.d.K), fk)
-        return uff + float(xref @ self.d.K), fk
+            self._rest = (reference.position, lin, fk)
+        return lin, fk
+
+    def _make_row_map(self) -> tuple[float, float, float, float]:
+        """The linear part of a row without preview (feed-forward plus K times the reference state), as
+        weights on the reference's (position, velocity, acceleration, jerk): the row of a reference
+        extrapolated at constant jerk is linear in those four (the model, the spread and the filter of its
+        flat output are), so four evaluations at the design replace the polynomial work of every cycle."""
+        dt = self.dt
+        self._row_tt = dt * (np.array([1.0, 2.0]) + self.model.extra_delay / dt)
+        times = np.array([dt, 2 * dt])
+        w = []
+        for unit in np.eye(4):
+            ext = _Extrapolated(Reference(*map(float, unit)))
+            uff = float(self.model.held_effort(ext, self._row_tt, self.spread)[0]) if self.settings.feedforward else 0.0
+            w.append(uff + float(self.model.reference_states(ext, times, self.spread)[0] @ self.d.K))
+        self._row_map = (w[0], w[1], w[2], w[3])
+        return self._row_map
 
     def loop_matrix(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> np.ndarray:
         """The closed loop around a linear plant ``x(k+1) = A x(k) + B u(k-1)``, ``y = C x`` (table position
@@ -354,6 +369,19 @@ class Mbc(Controller):
         M[n_p + 1:, n_p + 1:] = self._Mp
         M[n_p, :] = -kf @ M[n_p + 1:, :]  # u = -K x^ + gd d^
         return M
+
+    def linear_form(self) -> Any:
+        """State [s(k|k-1), the net command sent last cycle] (before the step), the reference held and the
+        standstill not engaged (it engages only at rest on a Coulomb model); see
+        :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        na = self._n + 2
+        x, pos, vel = basis(na + 1)
+        s_next = self._Mp @ x[:na] + np.outer(self._Np[:, 0], pos) + np.outer(self._Np[:, 1], vel) \
+            + np.outer(self.d.G, x[na])
+        u = -(self._Kf @ s_next)
+        return from_rows([*s_next, u], u, self.dt)
 
     @property
     def disturbance_estimate(self) -> float:

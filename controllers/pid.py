@@ -83,6 +83,25 @@ class Pid(Controller):
     def step(self, reference: Reference, feedback: Feedback) -> Any:
         return self._pid(reference, feedback)
 
+    def _pid_rows(self, x: Any, pos: Any, vel: Any) -> tuple[Any, Any, Any]:
+        """The PID's step on rows over [state, position, velocity] (controllers/linear_form.py), the
+        reference held: (integral after the step, filtered e' after it, the PID term). Without the clamp
+        (``i_limit``): linear for deviations inside it."""
+        s = self.settings
+        integral = x[0] - self.dt * pos  # e = -position
+        d = (1.0 - self._d_alpha) * x[1] - self._d_alpha * vel  # e' = -velocity
+        return integral, d, s.ki * integral + s.kd * d - s.kp * pos
+
+    def linear_form(self) -> Any:
+        """State [integral, filtered e'] (before the step); see :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        if self.ops is not SCALAR_OPS:
+            return None  # a batch of gain sets has no single form
+        x, pos, vel = basis(2)
+        integral, d, u = self._pid_rows(x, pos, vel)
+        return from_rows([integral, d], u, self.dt)
+
 
 @dataclass
 class PidDobSettings(PidSettings):
@@ -129,10 +148,13 @@ class PidDob(Pid):
 
     @classmethod
     def for_plant(cls, dt: float, plant_spec: Any, axis: str = "x", **settings: Any) -> PidDob:
-        """Table 1's column for ``axis`` with the plant's nominal mass (Table 2)."""
-        if axis not in TABLE1_KI:
-            raise SettingsError(f"controller {cls.name}: axis: must be 'x' or 'y', got {axis!r}")
-        base: dict[str, Any] = {"ki": TABLE1_KI[axis], "ff_mass": _mass_of(plant_spec)}
+        """Table 1's column for ``axis`` (x, y; another axis, such as z, takes the defaults, Table 1's X, as
+        ``pid`` does: set its gains) with the plant's nominal mass: Table 2's on a rigid plant, the total
+        ``m1 + m2`` on a two-mass one (below its mode the axis moves as that one body, the rigid model
+        m q'' = f - g the observer assumes)."""
+        base: dict[str, Any] = {"ff_mass": _mass_of(plant_spec)}
+        if axis in TABLE1_KI:
+            base["ki"] = TABLE1_KI[axis]
         return cls(dt, {**base, **settings})
 
     def reset(self) -> None:
@@ -151,6 +173,25 @@ class PidDob(Pid):
         """The DOB's friction estimate g^, in the effort unit (N)."""
         return self.observer.g_hat
 
+    def linear_form(self) -> Any:
+        """State [integral, filtered e', v^, g^, f(k-1), ..., f(k-1-delay)] (before the step): the observer
+        of controllers/dob.py fed this law's own past efforts; see :meth:`Controller.linear_form`."""
+        from drivectl.controllers.linear_form import basis, from_rows
+
+        if self.ops is not SCALAR_OPS:
+            return None
+        ob = self.observer
+        nd = ob.delay_cycles + 1
+        x, pos, vel = basis(4 + nd)
+        acting = x[4 + ob.delay_cycles]  # the command that moved the axis since the last sample
+        v_pred = x[2] + self.dt * (acting - x[3]) / ob.mass
+        innov = vel - v_pred
+        v_hat = v_pred + self.dt * ob.l1 * innov
+        g_hat = x[3] - self.dt * ob.l2 * innov
+        integral, d, u = self._pid_rows(x, pos, vel)
+        f = u + g_hat
+        return from_rows([integral, d, v_hat, g_hat, f, *x[4:4 + nd - 1]], f, self.dt)
+
     def step(self, reference: Reference, feedback: Feedback) -> Any:
         g_hat = self.observer.step(self.last_effort, feedback.velocity)
         f = self._pid(reference, feedback) + g_hat
@@ -159,8 +200,10 @@ class PidDob(Pid):
 
 
 def _mass_of(plant_spec: Any) -> float:
-    """The nominal moving mass of a PlantSpec (``params['mass']``) or of a mapping of parameters."""
-    params = plant_spec if isinstance(plant_spec, Mapping) else plant_spec.params
-    if "mass" not in params:
-        raise SettingsError("plant: mass: missing (pid-dob needs a rigid plant's mass)")
-    return float(params["mass"])
+    """The nominal moving mass of a PlantSpec (its parameters' bodies in total: ``mass``, or ``m1 + m2``;
+    its effects are not the model) or of a mapping of a rigid plant's parameters (``mass``)."""
+    if not isinstance(plant_spec, Mapping):
+        return float(plant_spec.without_effects().nominal_mass)
+    if "mass" not in plant_spec:
+        raise SettingsError("plant: mass: missing (pid-dob needs the nominal mass of eqs (2)-(3))")
+    return float(plant_spec["mass"])

@@ -27,6 +27,7 @@ from drivectl.errors import InputError
 DEFAULT_CONFIG_TOML = """\
 # drivectl machine configuration (embedded default: emulated drives, no hardware)
 cycle_s = 0.001                 # servo cycle = SYNC period
+# loop = "process"              # the wall-clock servo loop: in a process of its own, or "thread" of the program's
 
 [bus]
 interface = "virtual"           # any python-can interface: virtual, slcan, socketcand, socketcan, pcan, kvaser, ...
@@ -126,8 +127,16 @@ fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines i
 
 # [health]
 # store = "health"              # drivectl health's store (docs/health.md); default: the user's data folder
+# [health.limits]               # where a wear trend becomes an alarm's deadline (defaults: docs/health.md)
+# backlash.width = "20um"
+# viscous.scale = 1.5
+# [axes.x.health]
+# profile = "fingerprint"       # drivectl health run's profile (library name, or a TOML file beside this one)
 """
 
+
+#: where a wall-clock servo loop may run (session.connect's ``loop``, the configuration's ``loop``)
+LOOPS = ("process", "thread")
 
 #: the largest position count of the drive's INTEGER32 0x6064 / 0x607A
 MAX_COUNTS = 2**31 - 1
@@ -249,6 +258,9 @@ class AxisConfig:
     #: [axes.NAME] identity, vendor_id, product_code, revision: what the boot compares of 0x1018
     #: (driver/axis_boot.py IdentityCheck; the values the file leaves out come from the EDS's [DeviceInfo])
     identity: Any = None
+    #: [axes.NAME.health]: the fingerprint run's profile and this axis's health limits
+    #: (tools/health/settings.py AxisHealth)
+    health: Any = None
 
     def limits_with(self, drive: Mapping[str, Any]) -> Limits:
         """The configured limits, completed by what the drive holds for the keys the file left out."""
@@ -267,6 +279,17 @@ class MachineConfig:
     checks: RunChecks = field(default_factory=RunChecks)  # [checks]: when a completed run warns or faults
     #: [health] store: the health store's folder (drivectl health; relative to the file's folder)
     health_store: str | None = None
+    #: [health.limits]: "effect.param" -> SI value, for every axis (tools/health/settings.py)
+    health_limits: dict[str, float] = field(default_factory=dict)
+    #: where the wall-clock servo loop runs: "process" (its own) or "thread" (the program's); None: the default
+    loop: str | None = None
+
+    def health_limits_of(self, axis: str) -> dict[str, float]:
+        """The health limits of ``axis``: the documented defaults, [health.limits], [axes.NAME.health.limits]."""
+        from drivectl.tools.health.settings import axis_limits
+
+        ac = self.axes.get(axis)
+        return axis_limits(self.health_limits, ac.health if ac is not None else None)
 
     def axis(self, name: str) -> AxisConfig:
         if name not in self.axes:
@@ -313,11 +336,13 @@ def _string(src: str, key: str, value: Any) -> str:
 
 
 def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
-    unknown = set(data) - {"cycle_s", "axes", "bus", "checks", "health"}
+    unknown = set(data) - {"cycle_s", "loop", "axes", "bus", "checks", "health"}
     if unknown:
-        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks, health)")
+        raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, loop, bus, axes, checks, "
+                          "health)")
+    loop = _choice(src, "loop", data["loop"], LOOPS) if "loop" in data else None
     checks = _checks(data.get("checks", {}), src)
-    health_store = _health(data.get("health", {}), src)
+    health_store, health_limits = _health(data.get("health", {}), src)
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
@@ -338,7 +363,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: {k}: expected a table")
         allowed = {"plant", "controller", "profile", "controller_settings", "encoder_m_per_count", "limits",
                    "node_id", "rated_effort", "eds", "max_lost_cycles", "rpdo_timeout_ms", "model", "motion",
-                   "homing", "emulator", "last_resort", "sdo_init",
+                   "homing", "emulator", "last_resort", "sdo_init", "health",
                    "enable_settle_ms", "identity", "vendor_id", "product_code", "revision"}
         extra = set(raw) - allowed
         if extra:
@@ -417,6 +442,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             enable_settle_s=_settle_ms(src, f"{k}.enable_settle_ms", raw.get("enable_settle_ms", 0)) / 1000.0,
             rated_effort_source=f"{src}: {k}.rated_effort" if "rated_effort" in raw else None,
             identity=_identity(src, k, raw),
+            health=_axis_health(src, f"{k}.health", raw.get("health")),
         )
     owner: dict[int, str] = {}
     for name, ac in axes.items():
@@ -424,22 +450,52 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks, health_store)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_limits, loop)
 
 
-def _health(raw: Any, src: str) -> str | None:
-    """[health] store = DIR: the health store (drivectl health), a path relative to the file's folder."""
+def _health(raw: Any, src: str) -> tuple[str | None, dict[str, float]]:
+    """[health] store = DIR: the health store (drivectl health), a path relative to the file's folder;
+    [health.limits]: the trend limits of every axis (tools/health/settings.py)."""
+    from drivectl.tools.health.settings import parse_limits
+
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: health: expected a table")
-    extra = set(raw) - {"store"}
+    extra = set(raw) - {"store", "limits"}
     if extra:
-        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store)")
+        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store, limits)")
+    try:
+        limits = parse_limits(src, "health.limits", raw.get("limits"))
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
     if "store" not in raw:
-        return None
+        return None, limits
     store = Path(_string(src, "health.store", raw["store"])).expanduser()
     if not store.is_absolute() and not src.startswith("<"):
         store = Path(src).parent / store
-    return str(store)
+    return str(store), limits
+
+
+def _axis_health(src: str, key: str, raw: Any) -> Any:
+    """[axes.NAME.health]: its profile checked now (it loads: one line naming the key), a TOML file taken
+    from the configuration file's folder when relative."""
+    from drivectl.profiles.base import ProfileError
+    from drivectl.profiles.library import load_profile
+    from drivectl.tools.health.settings import parse_axis_health
+
+    try:
+        health = parse_axis_health(src, key, raw)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+    profile = health.profile
+    if profile.endswith(".toml") and not Path(profile).expanduser().is_absolute() and not src.startswith("<"):
+        profile = str(Path(src).parent / Path(profile).expanduser())
+    if profile != health.profile or raw is not None:
+        try:
+            load_profile(profile)
+        except ProfileError as exc:
+            raise ConfigError(f"{src}: {key}.profile: {exc}") from None
+        health = replace(health, profile=profile)
+    return health
 
 
 def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:

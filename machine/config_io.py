@@ -26,6 +26,16 @@ import tomlkit
 from drivectl.controllers.runtime.homing import HOMING_KEYS
 from drivectl.controllers.runtime.motion import MOTION_KEYS
 from drivectl.machine.config import DEFAULT_CONFIG_TOML, ConfigError, MachineConfig, parse_config
+from drivectl.tools.health.settings import DEFAULT_PROFILE
+
+
+def _dotted(limits: dict[str, float]) -> dict[str, dict[str, float]]:
+    """"effect.param" -> value as the TOML tables a configuration writes (backlash.width = 2e-05)."""
+    out: dict[str, dict[str, float]] = {}
+    for key, value in limits.items():
+        effect, _, param = key.partition(".")
+        out.setdefault(effect, {})[param] = value
+    return out
 
 
 def _plain(value: Any) -> Any:
@@ -49,6 +59,8 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     doc = tomlkit.document()
     doc.add(tomlkit.comment(f"resolved configuration from {cfg.source}"))
     doc.add("cycle_s", cfg.cycle_s)
+    if cfg.loop is not None:  # where the wall-clock loop runs (session.connect's loop)
+        doc.add("loop", cfg.loop)
     bus = tomlkit.table()
     b = cfg.bus
     bus.add("interface", b.interface)
@@ -69,9 +81,12 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
     for f in dataclasses.fields(cfg.checks):
         checks.add(f.name, getattr(cfg.checks, f.name))
     doc.add("checks", checks)
-    if cfg.health_store:  # [health]: drivectl health's store (docs/health.md)
+    if cfg.health_store or cfg.health_limits:  # [health]: drivectl health's store and limits (docs/health.md)
         health = tomlkit.table()
-        health.add("store", cfg.health_store)
+        if cfg.health_store:
+            health.add("store", cfg.health_store)
+        if cfg.health_limits:
+            health.add("limits", _dotted(cfg.health_limits))
         doc.add("health", health)
     axes = tomlkit.table(is_super_table=True)
     for name, ac in cfg.axes.items():
@@ -143,6 +158,12 @@ def show_document(cfg: MachineConfig) -> tomlkit.TOMLDocument:
         _add_keyed(t, "homing", ac.homing, HOMING_KEYS)
         if ac.emulator is not None:
             _add_keyed(t, "emulator", ac.emulator, EMULATOR_KEYS)
+        if ac.health is not None and (ac.health.limits or ac.health.profile != DEFAULT_PROFILE):
+            ht = tomlkit.table()  # [axes.NAME.health]: the fingerprint run's profile, this axis's limits
+            ht.add("profile", ac.health.profile)
+            if ac.health.limits:
+                ht.add("limits", _dotted(ac.health.limits))
+            t.add("health", ht)
         axes.add(name, t)
     doc.add("axes", axes)
     return doc

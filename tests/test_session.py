@@ -306,7 +306,8 @@ def test_an_exception_inside_the_context_disables_every_axis(tmp_path):
 
 
 def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path, monkeypatch):
-    """The threaded loop on the wall clock: outcome only (no timing asserted). The drive's RPDO deadline runs
+    """The threaded loop on the wall clock (loop="thread"; tests/test_loop_process.py has the loop's own process):
+    outcome only (no timing asserted). The drive's RPDO deadline runs
     on the wall clock too; 50 ms here so that a loaded test machine's hiccups are not this test's subject."""
     import os
 
@@ -316,7 +317,7 @@ def test_wall_clock_loop_moves_and_counts_deadlines(tmp_path, monkeypatch):
     cfg = config()
     object.__setattr__(cfg.axis("x"), "rpdo_timeout_ms", 50)
     was = (os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0))
-    with drivectl.connect(cfg, axes=["x"], clock="wall", fault_dir=tmp_path, stall_s=1.0) as m:
+    with drivectl.connect(cfg, axes=["x"], clock="wall", fault_dir=tmp_path, stall_s=1.0, loop="thread") as m:
         x = m.axes["x"]
         x.enable()
         h = x.move_to(0.002).wait(timeout=20)

@@ -89,12 +89,14 @@ class Ring:
     slots, is strictly increasing with the skipped slots as a gap (docs/trace-format.md), never the
     count of cycles run (which lost the skipped time and, after a stop, repeated a number)."""
 
-    def __init__(self, size: int):
+    def __init__(self, size: int, data: np.ndarray | None = None, slot: np.ndarray | None = None):
         if size < 2:
             raise ValueError(f"capture ring: size must be >= 2, got {size}")
         self.size = size
-        self.data = np.full((len(CHANNELS), size), np.nan)
-        self.slot = np.zeros(size, dtype=np.int64)
+        # ``data``/``slot``: arrays the ring fills in place (the loop's own process: shared memory, read by
+        # the user's process without a copy through a pipe); else its own
+        self.data = data if data is not None else np.full((len(CHANNELS), size), np.nan)
+        self.slot = slot if slot is not None else np.zeros(size, dtype=np.int64)
         self.rows = [self.data[j] for j in range(len(CHANNELS))]
         self.next = 0  # index the next sample goes to
         self.count = 0  # samples pushed, in all

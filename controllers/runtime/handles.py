@@ -43,6 +43,9 @@ class MotionFault(RuntimeError):
         super().__init__(message)
         self.fault = fault
 
+    def __reduce__(self) -> tuple[type, tuple[str, Fault | None]]:
+        return MotionFault, (str(self), self.fault)  # across the loop's process boundary (session_process.py)
+
 
 class Move:
     """A handle on a command given to the loop (move, jog, stop, home, run): ``wait()`` for its end.

@@ -83,7 +83,7 @@ class AxisState(Enum):
 class AxisRuntime:
     """One axis in the loop: its channel (axis, controller, limits), its reference and its state."""
 
-    def __init__(self, channel: Channel, motion: MotionLimits, ring_size: int):
+    def __init__(self, channel: Channel, motion: MotionLimits, ring_size: int, ring: Ring | None = None):
         self.ch = channel
         self.name = channel.axis.name
         self.motion = motion
@@ -100,7 +100,7 @@ class AxisRuntime:
         self.run: ProfileRun | None = None
         self.jog_until = 0  # loop slot (Loop.slot) at which an unrenewed jog stops (0: no jog)
         self.move_started = False
-        self.ring = Ring(ring_size)
+        self.ring = ring if ring is not None else Ring(ring_size)
         self.captures: list[Capture] = []
         self.fault: Fault | None = None
         self.read_error: str = ""
@@ -128,6 +128,9 @@ class ServoLoop:
         now: Callable[[], float] = time.perf_counter,
         sleep: Callable[[float], None] | None = None,
         meta: dict[str, dict[str, str]] | None = None,
+        ring: Callable[[str, int], Ring] | None = None,
+        on_cycle: Callable[[], None] | None = None,
+        collect_while_enabled: bool = True,
     ):
         if clock not in CLOCKS:
             raise ValueError(f"loop: clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
@@ -154,9 +157,16 @@ class ServoLoop:
         self.realtime = realtime
         self.meta = meta or {}
         motion = motion or {}
-        ring = max(2, int(round(ring_s / self.dt)))
+        #: ``ring(name, size)``: each axis's ring (the loop's own process puts them in shared memory)
+        self.ring_size = ring_size = max(2, int(round(ring_s / self.dt)))
         self.axes: dict[str, AxisRuntime] = {
-            ch.axis.name: AxisRuntime(ch, motion.get(ch.axis.name, MotionLimits()), ring) for ch in channels}
+            ch.axis.name: AxisRuntime(ch, motion.get(ch.axis.name, MotionLimits()), ring_size,
+                                      ring(ch.axis.name, ring_size) if ring is not None else None)
+            for ch in channels}
+        #: called at the end of every cycle, a stop's too (the loop's own process publishes its status there)
+        self.on_cycle = on_cycle
+        #: False: no collection at all while an axis is enabled (the loop's own process: nothing else allocates)
+        self.collect_while_enabled = collect_while_enabled
         self._rts = list(self.axes.values())
         self._channels = [rt.ch for rt in self._rts]
         #: every bus access of the user's side (SDO) takes it; the loop holds it during a cycle
@@ -330,6 +340,8 @@ class ServoLoop:
                                   f"the servo loop raised {type(exc).__name__}: {exc}"), StopReason.FAULT)
             self.cycle += 1  # (a stop's own cycles were counted as they ran)
             self.slot += 1
+            if self.on_cycle is not None:
+                self.on_cycle()
 
     def _axis_named(self, exc: Exception) -> str:
         text = str(exc)
@@ -528,6 +540,8 @@ class ServoLoop:
             rt.ring.push(s, rt.reference, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
             if rt.captures:
                 self._captures(rt, s)
+        if self.on_cycle is not None:
+            self.on_cycle()
 
     def _queue_fault_capture(self, cap: Capture) -> None:
         if self.fault_dir is None:
@@ -610,6 +624,8 @@ class ServoLoop:
         """A young-generation collection, only when at least half a cycle is left before the next."""
         slack = pacer.t0 + k * self.dt - self._now()
         if slack < 0.5 * self.dt:
+            return
+        if not self.collect_while_enabled and any(rt.state is AxisState.SERVO for rt in self._rts):
             return
         t0 = self._now()
         # young every 0.1 s, middle every 10 s; once a minute what survived those: scanned when no axis is

@@ -1,4 +1,5 @@
-"""Bus logs in: a CAN log that python-can reads (candump, .asc, .blf, .trc, .csv, .mf4) turned into a trace.
+"""Bus logs in: a CAN log that python-can reads (candump, .asc, .blf, .trc, .csv, .mf4) decoded, turned into a
+trace, replayed.
 
 See docs/guide/buslog.md; the trace written is format v1 (docs/trace-format.md).
 """

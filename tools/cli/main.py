@@ -72,6 +72,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("doctor", "drivectl.tools.cli.doctor:add_doctor_parser", "drivectl.tools.cli.doctor:cmd_doctor", True),
     Command("drive", "drivectl.tools.cli.drive:add_drive_parser", "drivectl.tools.cli.drive:cmd_drive", True),
     Command("decode", "drivectl.tools.buslog.decode:add_decode_parser", "drivectl.tools.buslog.decode:cmd_decode"),
+    Command("replay", "drivectl.tools.buslog.replay:add_replay_parser", "drivectl.tools.buslog.replay:cmd_replay",
+            True),
     Command("plot", f"{_HERE}:add_plot_parser", f"{_HERE}:cmd_plot"),
     Command("summary", f"{_HERE}:add_summary_parser", f"{_HERE}:cmd_summary"),
 )
@@ -135,6 +137,9 @@ def add_trace_parser(sub: argparse._SubParsersAction) -> None:
                    ".mf4) into the axis's trace, one row per SYNC (docs/guide/buslog.md)")
     t.add_argument("--node", type=int, metavar="N", help="with --from-log: the drive's node-ID (default: the axis's)")
     t.add_argument("--eds", metavar="FILE", help="with --from-log: the drive's EDS (default: the axis's)")
+    t.add_argument("--mapping-from", choices=("configuration", "eds"), default="configuration",
+                   help="with --from-log: the mapping of the PDOs the log does not configure itself: the "
+                   "configuration's planned mapping (default) or the EDS's default values")
     t.add_argument("--paced", action="store_true",
                    help="run the cycles on the wall clock (1 per cycle_s) instead of lockstep; missed deadlines "
                    "are recorded in the trace (the same as --clock wall)")
@@ -225,13 +230,19 @@ def _trace_from_log(args: argparse.Namespace) -> int:
         raise checks.ConfigError(f"--axis {args.axis}: --from-log converts one axis (one node) at a time")
     cfg = load_config(args.config)
     path = log_to_trace(Path(args.from_log), axis=names[0], out_dir=Path(args.out), node=args.node,
-                        eds=Path(args.eds) if args.eds else None, config=cfg)
+                        eds=Path(args.eds) if args.eds else None, config=cfg, mapping_base=args.mapping_from,
+                        progress=not args.quiet)
     from drivectl.tracefile.format import Trace
 
     tr = Trace.read(path, columns=("lost",))
-    print(f"trace: {args.from_log}: {len(tr)} SYNCs of node {tr.meta.get('node')}, {tr.meta.get('lost_rows')} lost, "
-          f"cycle {float(tr.meta['dt_s']) * 1e3:g} ms ({tr.meta.get('dt_source')}), frame jitter max "
-          f"{float(tr.meta.get('frame_jitter_max_s', 'nan')) * 1e3:.3f} ms", file=sys.stderr)
+    m = tr.meta
+    print(f"trace: {args.from_log}: {len(tr)} SYNCs of node {m.get('node')}, {m.get('lost_rows')} lost, "
+          f"{m.get('bad_length_pdos')} PDOs of the wrong length, cycle {float(m['dt_s']) * 1e3:g} ms "
+          f"({m.get('dt_source')}), frame jitter max {float(m.get('frame_jitter_max_s', 'nan')) * 1e3:.3f} ms, "
+          f"p99 {float(m.get('frame_jitter_p99_s', 'nan')) * 1e3:.3f} ms", file=sys.stderr)
+    print(f"trace: mapping from {m.get('mapping_source')}", file=sys.stderr)
+    if m.get("truncated"):
+        print(f"trace: {args.from_log}: truncated: read as far as it goes: {m['truncated']}", file=sys.stderr)
     print(f"wrote {path}")
     return 0
 

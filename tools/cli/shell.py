@@ -531,6 +531,13 @@ def _history(load: bool) -> None:
         pass
 
 
+def add_loop_flag(parser: Any) -> None:
+    """``--loop process|thread``: where the wall-clock servo loop runs (session.connect's ``loop``)."""
+    parser.add_argument("--loop", choices=("process", "thread"), default=None,
+                        help="the wall-clock servo loop in a process of its own (the default, or the configuration's "
+                        "loop) or a thread of this one (docs/timing.md)")
+
+
 def add_shell_parser(sub: Any) -> None:
     s = sub.add_parser("shell", help="an interactive session on the machine: enable, move, jog, home, capture",
                        description="Connect to the machine once and command its axes (help inside lists the "
@@ -540,6 +547,7 @@ def add_shell_parser(sub: Any) -> None:
                    help="the loop's clock (default: wall for a person at a terminal; for a script, lockstep "
                    "on the emulated drives, wall on a real bus)")
     s.add_argument("--sim", action="store_true", help="SimAxis (the plants with no bus)")
+    add_loop_flag(s)
     s.add_argument("--out", default="traces", metavar="DIR", help="where captures and runs are written")
     live = s.add_mutually_exclusive_group()
     live.add_argument("--live", dest="live", action="store_true", default=None, help="live view on")
@@ -555,7 +563,7 @@ def cmd_shell(args: Any) -> int:
     axes = parse_axes(args.axis) if args.axis else None
     out = check_output_folder(args.out, "--out")
     clock = args.clock or ("wall" if sys.stdin.isatty() else None)
-    machine = connect(args.config, axes=axes, clock=clock, sim=args.sim, fault_dir=out)
+    machine = connect(args.config, axes=axes, clock=clock, sim=args.sim, fault_dir=out, loop=args.loop)
 
     def terminate(signum: int, frame: object) -> None:  # noqa: ARG001 - leave through the finally below
         raise SystemExit(128 + signum)

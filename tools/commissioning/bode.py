@@ -24,6 +24,9 @@ which removes the ramp; on a hold the reference is constant and nothing changes.
 The frequency response, its estimate and the mode: tools/commissioning/frf.py; the excitation and
 the held or travelled reference: tools/commissioning/bode_excitation.py.
 
+``--loop open`` takes the same run (:func:`excited_run`) to the open loop instead: the sensitivity from the
+recorded effort and the injected multisine, L, and the stability margins (tools/commissioning/margins.py).
+
 Library: :func:`measure_frf` -> :class:`BodeResult`, :func:`model_frf`, :func:`write_bode`. CLI:
 :func:`add_bode_parser` and :func:`cmd_bode`.
 """
@@ -37,7 +40,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -47,6 +50,7 @@ from drivectl.plant_emulator.models import PlantSpec
 from drivectl.tools.cli.exits import exits_on_error
 from drivectl.tools.commissioning.bode_excitation import BIAS_RAMP_S, BiasRamp, ExcitedController, Hold, multisine
 from drivectl.tools.commissioning.frf import BodeError, Mode, estimate_frf, find_mode, model_frf, model_modes
+from drivectl.tools.commissioning.margins import OPEN_FMAX, OPEN_FMIN
 from drivectl.tracefile.format import Trace, atomic_write_bytes, atomic_write_text
 
 #: length of one multisine period, s: the frequency resolution is its inverse (1 Hz), and 1 s keeps
@@ -192,7 +196,7 @@ def excitation_peak_velocity(spec: PlantSpec, one_period: np.ndarray, dt: float)
 
 
 def bias_plan(cfg: MachineConfig, axis_name: str, spec: PlantSpec, periods: int,
-              bias_velocity: float | None) -> BiasRamp | None:
+              bias_velocity: float | None, period_s: float = PERIOD_S) -> BiasRamp | None:
     """The constant-velocity bias for the measurement, or None (hold still). ``bias_velocity`` None:
     where the model has Coulomb friction, the fastest velocity up to :data:`BIAS_MAX_M_S` whose travel
     stays within :data:`BIAS_LIMIT_SHARE` of the soft-limit range, else hold; 0: hold. The travel is
@@ -201,7 +205,7 @@ def bias_plan(cfg: MachineConfig, axis_name: str, spec: PlantSpec, periods: int,
         raise BodeError(f"bode: --bias-velocity: must be >= 0 m/s, got {bias_velocity:g}")
     if bias_velocity == 0 or (bias_velocity is None and coulomb_level(spec) <= 0):
         return None
-    cruise = periods * PERIOD_S  # the ramps lose half their time each: travel = v * cruise
+    cruise = periods * period_s  # the ramps lose half their time each: travel = v * cruise
     hold = hold_position(cfg, axis_name)
     lim = cfg.axis(axis_name).limits.position
     if bias_velocity is None:
@@ -213,6 +217,132 @@ def bias_plan(cfg: MachineConfig, axis_name: str, spec: PlantSpec, periods: int,
                         f"{travel * 1e3:.1f} mm about {hold * 1e3:g} mm, more than axes.{axis_name}.limits.position_m "
                         f"({lim[0]:g} .. {lim[1]:g} m) allows; lower one of them")
     return BiasRamp(hold - 0.5 * travel, bias_velocity, cruise + BIAS_RAMP_S)
+
+
+@dataclass
+class ExcitedRun:
+    """One run of an axis holding (or sliding about a bias) with a multisine added to its controller's
+    effort: what both the closed-loop FRF and the open-loop sensitivity (tools/commissioning/margins.py)
+    are estimated from."""
+
+    trace: Trace
+    excitation: np.ndarray  # the multisine as added, sample by sample (periods * n)
+    n: int  # samples per period
+    periods: int
+    freqs: np.ndarray  # the excited lines, Hz
+    spec: PlantSpec  # the model (what the controller believes)
+    plant: PlantSpec  # what the axis plays
+    bias: BiasRamp | None
+    amplitude: float
+    controller: Controller  # the inner law (without the excitation)
+    bus: str
+    stop: str
+    detail: str
+    dt: float
+
+    @property
+    def ok(self) -> bool:
+        return self.stop == "completed"
+
+    @property
+    def analysed(self) -> int:
+        """Rows analysed: whole periods only (the bias's ramp down after them is not)."""
+        return min(len(self.trace), self.periods * self.n)
+
+
+def check_band(fmin: float, fmax: float, dt: float) -> None:
+    nyq = 0.5 / dt
+    if not (0 < fmin < fmax <= nyq):
+        raise BodeError(f"bode: band --fmin {fmin:g} .. --fmax {fmax:g} Hz: need 0 < fmin < fmax <= {nyq:g} Hz "
+                        "(Nyquist)")
+
+
+class Plan(NamedTuple):
+    """The excitation planned (and checked) before anything opens."""
+
+    one: np.ndarray  # one period of the multisine
+    n: int  # samples per period
+    periods: int
+    bias: BiasRamp | None
+    amplitude: float
+    spec: PlantSpec  # the model
+    plant: PlantSpec  # what the axis plays
+    freqs: np.ndarray  # the excited lines, Hz
+
+
+def plan_excitation(cfg: MachineConfig, axis_name: str, *, seconds: float = 20.0, amplitude: float | None = None,
+                    fmin: float = DEFAULT_FMIN, fmax: float = DEFAULT_FMAX, model: str | None = None,
+                    plant: str | None = None, bias_velocity: float | None = None, period_s: float = PERIOD_S
+                    ) -> Plan:
+    """Check the request and plan the excitation before anything opens. BodeError / ConfigError (one
+    line) on bad input."""
+    from drivectl.machine.build import model_specs, plant_specs
+
+    ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
+    dt = cfg.cycle_s
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise BodeError(f"bode: --seconds: must be > 0, got {seconds:g}")
+    check_band(fmin, fmax, dt)
+    max_eff = ac.limits.max_effort
+    plants = plant_specs(cfg, [axis_name], plant)
+    spec = model_specs(cfg, [axis_name], model, plant, plants=plants)[axis_name]
+    n = int(round(period_s / dt))
+    periods = max(3, int(round(seconds / period_s, 9)))
+    bias = bias_plan(cfg, axis_name, spec, periods, bias_velocity, period_s)
+    if amplitude is None and bias is not None:
+        # sliding, the friction is no threshold to beat: the largest excitation whose own velocity
+        # (open loop, peak) stays within 1 / BIAS_MARGIN of the bias, so the axis never reverses
+        unit, _ = multisine(n, dt, fmin, fmax, 1.0)
+        amplitude = min(abs(bias.velocity) / (BIAS_MARGIN * excitation_peak_velocity(spec, unit, dt)),
+                        MAX_DEFAULT_FRACTION * max_eff)
+    elif amplitude is None:
+        amplitude = default_amplitude(spec, max_eff, ac.rated_effort)
+    # the excitation alone must leave the controller most of the effort range, else clipping (a
+    # nonlinearity) corrupts the estimate
+    if not (math.isfinite(amplitude) and 0 < amplitude <= 0.5 * max_eff):
+        raise BodeError(f"bode: --amplitude: must be > 0 and at most half of axes.{axis_name}.limits.max_effort "
+                        f"({0.5 * max_eff:g}), got {amplitude:g}")
+    one, lines = multisine(n, dt, fmin, fmax, amplitude)
+    return Plan(one, n, periods, bias, amplitude, spec, plants[axis_name], lines)
+
+
+def excited_run(cfg: MachineConfig, axis_name: str, *, sim: bool = False, seconds: float = 20.0,
+                amplitude: float | None = None, fmin: float = DEFAULT_FMIN, fmax: float = DEFAULT_FMAX,
+                model: str | None = None, plant: str | None = None, controller: Controller | None = None,
+                noise: float = 0.0, seed: int = 0, bias_velocity: float | None = None, period_s: float = PERIOD_S,
+                planned: Plan | None = None) -> ExcitedRun:
+    """Run the axis under its controller (or ``controller``) with the multisine added to the effort (see
+    :func:`measure_frf` for the arguments); ``planned``: the result of :func:`plan_excitation` already
+    made (and checked) by the caller."""
+    from drivectl.controllers.registry import make_controller
+    from drivectl.controllers.runtime.servo import Channel, run_channels
+    from drivectl.machine.build import machine_meta, open_machine
+
+    ac = cfg.axis(axis_name)
+    dt = cfg.cycle_s
+    one, n, periods, bias, amplitude, spec, plant_spec, lines = planned or plan_excitation(
+        cfg, axis_name, seconds=seconds, amplitude=amplitude, fmin=fmin, fmax=fmax, model=model, plant=plant,
+        bias_velocity=bias_velocity, period_s=period_s)
+    exc = np.tile(one, periods)
+    inner = controller or make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
+                                          source=f"{cfg.source}: axes.{axis_name}.controller_settings")
+    ctrl = ExcitedController(inner, exc)
+    profile: Hold | BiasRamp = bias or Hold(hold_position(cfg, axis_name), periods * n * dt)
+    # periods * n rows exactly (the row count is duration / dt + 1, so one dt short), then the bias's
+    # ramp down to rest after the last period (not analysed)
+    rows = periods * n + (int(round(BIAS_RAMP_S / dt)) if bias else 0)
+    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: profile.start_position},
+                           noise=noise, seed=seed)
+    try:
+        what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
+        what += " + multisine on the effort"
+        meta = machine_meta(cfg, machine, plant_spec, spec, what)
+        res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
+                           duration=(rows - 1) * dt)
+    finally:
+        machine.close()
+    return ExcitedRun(res.trace, exc, n, periods, lines, spec, plant_spec, bias, amplitude, inner,
+                      machine.bus, res.stop.value, res.detail, dt)
 
 
 def measure_frf(
@@ -240,78 +370,40 @@ def measure_frf(
     plays (see :func:`~drivectl.machine.build.model_specs`); ``controller`` replaces the axis's.
     ``bias_velocity`` (m/s): the constant-velocity bias (:func:`bias_plan`; None: automatic where the
     model has Coulomb friction, 0: hold still)."""
-    from drivectl.controllers.registry import make_controller
-    from drivectl.controllers.runtime.servo import Channel, run_channels
-    from drivectl.machine.build import machine_meta, model_specs, open_machine, plant_specs
-
-    ac = cfg.axis(axis_name)  # ConfigError for an unknown axis, before anything opens
     dt = cfg.cycle_s
-    nyq = 0.5 / dt
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise BodeError(f"bode: --seconds: must be > 0, got {seconds:g}")
-    if not (0 < fmin < fmax <= nyq):
-        raise BodeError(f"bode: band --fmin {fmin:g} .. --fmax {fmax:g} Hz: need 0 < fmin < fmax <= {nyq:g} Hz "
-                        "(Nyquist)")
-    max_eff = ac.limits.max_effort
-    plants = plant_specs(cfg, [axis_name], plant)
-    spec = model_specs(cfg, [axis_name], model, plant, plants=plants)[axis_name]
-    n = int(round(PERIOD_S / dt))
-    periods = max(3, int(seconds / PERIOD_S))
-    bias = bias_plan(cfg, axis_name, spec, periods, bias_velocity)
-    if amplitude is None and bias is not None:
-        # sliding, the friction is no threshold to beat: the largest excitation whose own velocity
-        # (open loop, peak) stays within 1 / BIAS_MARGIN of the bias, so the axis never reverses
-        unit, _ = multisine(n, dt, fmin, fmax, 1.0)
-        amplitude = min(abs(bias.velocity) / (BIAS_MARGIN * excitation_peak_velocity(spec, unit, dt)),
-                        MAX_DEFAULT_FRACTION * max_eff)
-    elif amplitude is None:
-        amplitude = default_amplitude(spec, max_eff, ac.rated_effort)
-    # the excitation alone must leave the controller most of the effort range, else clipping (a
-    # nonlinearity) corrupts the estimate
-    if not (math.isfinite(amplitude) and 0 < amplitude <= 0.5 * max_eff):
-        raise BodeError(f"bode: --amplitude: must be > 0 and at most half of axes.{axis_name}.limits.max_effort "
-                        f"({0.5 * max_eff:g}), got {amplitude:g}")
-    one, _ = multisine(n, dt, fmin, fmax, amplitude)
-    exc = np.tile(one, periods)
-
-    inner = controller or make_controller(ac.controller, dt, ac.controller_settings, plant=spec, axis=axis_name,
-                                          source=f"{cfg.source}: axes.{axis_name}.controller_settings")
-    ctrl = ExcitedController(inner, exc)
-    profile: Hold | BiasRamp = bias or Hold(hold_position(cfg, axis_name), periods * PERIOD_S)
-    # periods * n rows exactly (the row count is duration / dt + 1, so one dt short), then the bias's
-    # ramp down to rest after the last period (not analysed)
-    rows = periods * n + (int(round(BIAS_RAMP_S / dt)) if bias else 0)
-    machine = open_machine(cfg, [axis_name], sim=sim, plant=plant, start={axis_name: profile.start_position},
-                           noise=noise, seed=seed)
-    try:
-        what = f"constant-velocity bias {bias.velocity * 1e3:.3g} mm/s" if bias else "hold"
-        what += " + multisine on the effort"
-        meta = machine_meta(cfg, machine, plants[axis_name], spec, what)
-        res = run_channels([Channel(machine.axes[axis_name], ctrl, profile, ac.limits, meta)],
-                           duration=(rows - 1) * dt)
-    finally:
-        machine.close()
-    tr = res.trace
+    run = excited_run(cfg, axis_name, sim=sim, seconds=seconds, amplitude=amplitude, fmin=fmin, fmax=fmax,
+                      model=model, plant=plant, controller=controller, noise=noise, seed=seed,
+                      bias_velocity=bias_velocity)
+    tr, spec, bias, n, exc = run.trace, run.spec, run.bias, run.n, run.excitation
     models = model_modes(spec)
     in_band = [f for f in models if fmin <= f <= fmax]
     model_mode = in_band[0] if in_band else None
-    base = BodeResult(axis_name, spec.name, machine.bus, np.array([]), np.array([], dtype=complex), np.array([]),
-                      np.array([], dtype=complex), None, model_mode, amplitude, spec.effort_unit, tr,
-                      res.stop.value, res.detail, coulomb_level(spec), 0.0 if bias is None else bias.velocity)
-    if not res.ok:
+    base = BodeResult(axis_name, spec.name, run.bus, np.array([]), np.array([], dtype=complex), np.array([]),
+                      np.array([], dtype=complex), None, model_mode, run.amplitude, spec.effort_unit, tr,
+                      run.stop, run.detail, coulomb_level(spec), 0.0 if bias is None else bias.velocity)
+    if not run.ok:
         return base
-    m = min(len(tr), periods * n)
+    m = run.analysed
     # pos - ref: the bias's ramp is not in the response (on a hold, ref is a constant the detrend removes)
     f, h, coh = estimate_frf(exc[:m], tr.effort[:m], (tr.pos - tr.ref)[:m], n, dt)
     keep = (f >= fmin - 1e-9) & (f <= fmax + 1e-9)
     base.freqs, base.frf, base.coherence = f[keep], h[keep], coh[keep]
-    if bias is not None:  # did it slide all along? velocity over 5 cycles (one count per cycle: 0.08 mm/s)
-        v = (tr.pos[n + 5 : m] - tr.pos[n : m - 5]) / (5 * dt)
-        base.stood_share = float(np.mean(v * math.copysign(1.0, bias.velocity) <= 0.0))
+    if bias is not None:
+        base.stood_share = stood_share(run)
     base.model = model_frf(spec, dt, base.freqs)
     # delays removed for the phase test: transport cycle, half-cycle of the hold, extra input delay
     base.mode = find_mode(base.freqs, base.frf, base.coherence, 1.5 * dt + spec.design().input_delay)
     return base
+
+
+def stood_share(run: ExcitedRun) -> float:
+    """Under a bias: the share of the analysed cycles the axis stood or moved backwards (velocity over 5
+    cycles; one count per cycle is 0.08 mm/s)."""
+    if run.bias is None:
+        return 0.0
+    tr, n, m, dt = run.trace, run.n, run.analysed, run.dt
+    v = (tr.pos[n + 5 : m] - tr.pos[n : m - 5]) / (5 * dt)
+    return float(np.mean(v * math.copysign(1.0, run.bias.velocity) <= 0.0))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -429,8 +521,17 @@ def add_bode_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="measure about this constant velocity (m/s) so a friction axis never sticks (default: "
                    "automatic where the model has Coulomb friction, twice the excitation's peak velocity; 0 = "
                    "hold still)")
-    p.add_argument("--fmin", type=float, default=DEFAULT_FMIN, help=f"lowest line, Hz (default {DEFAULT_FMIN:g})")
-    p.add_argument("--fmax", type=float, default=DEFAULT_FMAX, help=f"highest line, Hz (default {DEFAULT_FMAX:g})")
+    p.add_argument("--fmin", type=float, help=f"lowest line, Hz (default {DEFAULT_FMIN:g}; --loop open "
+                   f"{OPEN_FMIN:g})")
+    p.add_argument("--fmax", type=float, help=f"highest line, Hz (default {DEFAULT_FMAX:g}; --loop open {OPEN_FMAX:g})")
+    p.add_argument("--loop", choices=("closed", "open"), default="closed",
+                   help="closed (default): the response effort -> position and its mode; open: the sensitivity S "
+                   "= effort / injected disturbance, the open loop L = (1 - S) / S and its stability margins (gain "
+                   "and phase margin, Ms, bandwidth), written to bode-open-AXIS.csv/.png; --json then prints "
+                   '{"axis", "controller", "gm_db", "gm_hz", "pm_deg", "pm_hz", "ms", "bandwidth_hz", "coherence_min"}')
+    p.add_argument("--period", type=float, metavar="S",
+                   help="--loop open: the multisine's period, s (default 1, rounded up to whole periods of a "
+                   "disturbance the model names); its inverse is the line spacing")
     return p
 
 
@@ -447,24 +548,55 @@ def cmd_bode(args: argparse.Namespace) -> int:
         check_output_folder(args.out, "--out", 5_000_000)
     except TraceError as exc:
         raise ConfigError(str(exc)) from None
+    if getattr(args, "loop", "closed") == "open":
+        return _cmd_open(cfg, args)
+    if getattr(args, "period", None) is not None:
+        raise BodeError("bode: --period: only with --loop open (the closed loop's period is 1 s)")
     res = measure_frf(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
-                      fmin=args.fmin, fmax=args.fmax, model=args.model, plant=args.plant,
+                      fmin=DEFAULT_FMIN if args.fmin is None else args.fmin,
+                      fmax=DEFAULT_FMAX if args.fmax is None else args.fmax, model=args.model, plant=args.plant,
                       bias_velocity=args.bias_velocity)
     if not res.ok:
-        from drivectl.controllers.runtime.safe_stop import end_state_line
-
-        m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
-        after = m.get("safe_after_cycles", "unknown")
-        ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
-                               {res.axis: None if after == "unknown" else int(after)})
-        print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
-              "no response written", file=sys.stderr)
+        _stopped(res)
         return 1
     write_bode(res, args.out)
     if args.json:
         print(json.dumps(res.to_json()))
     else:
         print(summary_text(res), end="")
+        for p in res.files:
+            print(f"wrote {p}")
+    return 0
+
+
+def _stopped(res: Any) -> None:
+    """The one line of a measurement the loop stopped: the end state as the drive reported it."""
+    from drivectl.controllers.runtime.safe_stop import end_state_line
+
+    m = res.trace.meta  # the end state as the drive reported it after the stop (never assumed)
+    after = m.get("safe_after_cycles", "unknown")
+    ended = end_state_line({res.axis: m.get("safe_state", "unknown")},
+                           {res.axis: None if after == "unknown" else int(after)})
+    print(f"drivectl: bode: loop stopped ({res.stop}): {res.detail}; quick stop ({ended}), "
+          "no response written", file=sys.stderr)
+
+
+def _cmd_open(cfg: MachineConfig, args: argparse.Namespace) -> int:
+    """`bode --loop open`: the margins (tools/commissioning/margins.py)."""
+    from drivectl.tools.commissioning import margins as mg
+
+    res = mg.measure_open_loop(cfg, args.axis, sim=args.sim, seconds=args.seconds, amplitude=args.amplitude,
+                               fmin=mg.OPEN_FMIN if args.fmin is None else args.fmin,
+                               fmax=mg.OPEN_FMAX if args.fmax is None else args.fmax, model=args.model,
+                               plant=args.plant, bias_velocity=args.bias_velocity, period_s=args.period)
+    if not res.ok:
+        _stopped(res)
+        return 1
+    mg.write_open_loop(res, args.out)
+    if args.json:
+        print(json.dumps(res.to_json()))
+    else:
+        print(mg.summary_text(res), end="")
         for p in res.files:
             print(f"wrote {p}")
     return 0

@@ -426,7 +426,46 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--write-config", nargs="?", const="", metavar="FILE",
                    help="also merge the gains (and the controller) into axes.AXIS of FILE (default: the --config "
                    "in use), comments kept, the old file backed up as FILE.STAMP.bak")
+    p.add_argument("--target", metavar="gm=8dB,pm=45deg,ms=2",
+                   help="stability-margin targets: search the gains (of a law with a linear form: pid, pid-dob, mbc) "
+                   "that meet every one on the model and every corner, for the highest bandwidth (or --objective "
+                   "tracking), then measure the margins on the axis (bode --loop open)")
+    p.add_argument("--objective", choices=("bandwidth", "tracking"), default="bandwidth",
+                   help="with --target: the highest closed-loop bandwidth (default) or the best tracking score J")
     return p
+
+
+def _cmd_targets(args: argparse.Namespace, cfg: MachineConfig, targets: dict[str, float]) -> int:
+    """`tune --target`: tools/commissioning/tune_margins.py."""
+    from drivectl.tools.commissioning import tune_margins as tm
+    from drivectl.tracefile.format import atomic_write_text
+
+    res = tm.tune_to_targets(cfg, args.axis, targets, controller=args.controller, objective=args.objective,
+                             candidates=args.candidates, seed=args.seed, corners=args.corners, spread=args.spread,
+                             verify=not args.no_verify, sim=args.sim, seconds=args.seconds, weight=args.weight,
+                             progress=sys.stderr.isatty())
+    out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
+    atomic_write_text(out, tm.settings_toml(res))
+    merged = ""
+    if getattr(args, "write_config", None) is not None:
+        from drivectl.machine.config_io import merge_into, target_file
+
+        target = target_file(args.write_config, getattr(args, "config", None))
+        backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
+                            note=f"tuned by drivectl tune --target {tm.target_text(res.targets)}")
+        merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
+            f" (old file kept as {backup})" if backup else "")
+    if args.json:
+        print(json.dumps(res.to_json()))
+    else:
+        print(tm.report(res), end="")
+        print(f"wrote {out}")
+        if merged:
+            print(merged)
+    if res.measured is not None and not res.measured.ok:
+        print(f"drivectl: verification stopped: {res.measured.detail}", file=sys.stderr)
+        return 1
+    return 0
 
 
 @exits_on_error
@@ -445,6 +484,12 @@ def cmd_tune(args: argparse.Namespace) -> int:
         from drivectl.machine.config_io import target_file
 
         args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
+    if getattr(args, "target", None) is not None:
+        from drivectl.tools.commissioning.tune_margins import parse_targets
+
+        return _cmd_targets(args, cfg, parse_targets(args.target))  # parsed before anything runs or moves
+    if getattr(args, "objective", "bandwidth") != "bandwidth":
+        raise TuneError("tune: --objective: only with --target (without it, tune minimises the tracking cost J)")
     res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
                progress=sys.stderr.isatty(), corners=args.corners, spread=args.spread)

@@ -647,8 +647,13 @@ def add_explain_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Hold a recorded trace (format v1) against a plant, name the missing effects one after another "
         "(vocabulary: docs/effects.md), fit them, write the augmented plant TOML, a report and a PNG, and print the "
         "gap before and after and what remains against the data's own floor.")
-    p.add_argument("trace", metavar="TRACE.csv")
+    p.add_argument("trace", metavar="TRACE.csv|LOG", help="a trace, or a CAN log (.asc .blf .log .trc .csv .mf4): "
+                   "converted first as trace --from-log does (docs/guide/buslog.md)")
     p.add_argument("--plant", required=True, metavar="NAME|FILE", help="the model: built-in plant or plant TOML")
+    p.add_argument("--axis", help="with a CAN log: the axis of the configuration it holds (its node, EDS, encoder, "
+                   "rated effort; default x)")
+    p.add_argument("--node", type=int, metavar="N", help="with a CAN log: the drive's node-ID (default: the axis's)")
+    p.add_argument("--eds", metavar="FILE", help="with a CAN log: the drive's EDS (default: the axis's)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--out", metavar="DIR", help="folder for STEM.plant.toml, STEM.report.txt, STEM.png "
                    "(default: beside the trace)")
@@ -671,8 +676,18 @@ def cmd_explain(args: argparse.Namespace) -> int:
         from drivectl.machine.config_io import target_file
 
         args.write_config = str(target_file(args.write_config, getattr(args, "config", None)))
-    trace = Trace.read(path)
     out = Path(args.out) if args.out else path.parent
+    from drivectl.tools.buslog import is_bus_log
+
+    if is_bus_log(path):  # a CAN log: its trace first (beside the report), then the trace explained
+        from drivectl.tools.buslog import log_to_trace
+
+        path = log_to_trace(path, axis=getattr(args, "axis", None) or "x", out_dir=out,
+                            node=getattr(args, "node", None), eds=getattr(args, "eds", None),
+                            config=getattr(args, "config", None), progress=not getattr(args, "quiet", False))
+        if not args.json:
+            print(f"converted {args.trace} -> {path}")
+    trace = Trace.read(path)
     res = explain(trace, spec, out_dir=out, source=str(path), stem=path.stem + ".explain",
                   progress=not getattr(args, "quiet", False))
     if args.json:

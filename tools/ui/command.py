@@ -41,7 +41,12 @@ def add_ui_parser(sub: Any) -> None:
                    help="the loop's clock (default: lockstep, paced to the wall clock, on the emulated drives; "
                    "wall on a real bus)")
     s.add_argument("--sim", action="store_true", help="SimAxis (the plants with no bus)")
+    from drivectl.tools.cli.shell import add_loop_flag
+
+    add_loop_flag(s)
     s.add_argument("--out", default="traces", metavar="DIR", help="the trace folder: scope saves, explain's output")
+    s.add_argument("--store", metavar="DIR", help="the Health page's store (default: [health] store in the "
+                   "configuration, else the user's data folder; docs/health.md)")
 
 
 def check_listen(address: str, port: int) -> tuple[str, bool]:
@@ -180,8 +185,8 @@ def cmd_ui(args: Any) -> int:
     except ValueError as exc:
         print(f"drivectl: {exc}", file=sys.stderr)
         return 2
-    machine = connect(cfg, axes=axes, clock=args.clock, sim=args.sim, fault_dir=out)
-    console = Console(machine, Path(out))
+    machine = connect(cfg, axes=axes, clock=args.clock, sim=args.sim, fault_dir=out, loop=args.loop)
+    console = Console(machine, Path(out), health_store=Path(args.store).expanduser() if args.store else None)
     web = WebConsole(console)
     server = make_server(web)
     states: dict[str, str] = {}

@@ -114,10 +114,17 @@ class Console:
     """The browser's view of one connected machine: commands (validated), jogs with a dead man, the
     scope's captures, and a log of how every jog ended (for the person, and for the tests)."""
 
-    def __init__(self, machine: Any, out: Path, *, tick_s: float = 0.01):
+    def __init__(self, machine: Any, out: Path, *, tick_s: float = 0.01, health_store: Path | None = None):
+        from drivectl.tools.health.fingerprint import default_machine_name
+        from drivectl.tools.health.store import default_store
+        from drivectl.tools.ui.health import HealthPanel
+
         self.m = machine
         self.out = Path(out)
         self.conductor = Conductor(machine, tick_s)
+        #: the Health page: --store, else [health] store, else the user's data folder (docs/health.md)
+        store = health_store or (Path(machine.config.health_store) if machine.config.health_store else default_store())
+        self.health = HealthPanel(self, store, default_machine_name(machine.config))
         self.jogs: dict[str, JogHold] = {}
         self.stopping: list[dict[str, Any]] = []  # jogs that ended and whose standstill is not yet seen
         self.jog_log: list[dict[str, Any]] = []
@@ -177,7 +184,7 @@ class Console:
             return self.jog(client, msg)
         handler = {"enable": self._enable, "disable": self._disable, "fault_reset": self._fault_reset,
                    "move_to": self._move, "move_by": self._move, "home": self._home,
-                   "capture": self._capture}.get(str(op))
+                   "capture": self._capture, "health_run": self.health.start_run}.get(str(op))
         if handler is None:
             raise ValueError(f"unknown request {op!r}")
         return self.conductor.call(lambda: handler(msg)).result()
@@ -314,6 +321,7 @@ class Console:
             ev["travel_after_stop_m"] = after
             ev["deadman_s"] = rt.motion.jog_deadman
             self.jog_log.append(ev)
+        self.health.watch()
         for name, ax in self.m.axes.items():  # a drive in Fault: its 0x603F, read once per fault
             if ax.power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
                 if name not in self.drive_errors and name not in self._reading_error:

@@ -63,8 +63,12 @@ class WebConsole:
             Route("/api/status", self.api_status),
             Route("/api/jogs", self.api_jogs),
             Route("/api/traces", self.api_traces),
+            Route("/api/margins", self.api_margins),
             Route("/api/trace", self.api_trace),
             Route("/api/explain", self.api_explain, methods=["POST"]),
+            Route("/api/health", self.api_health),
+            Route("/api/health/axis", self.api_health_axis),
+            Route("/api/health/analyze", self.api_health_analyze, methods=["POST"]),
             Route("/files/{name:path}", self.files),
             WebSocketRoute("/ws", self.websocket),
         ])
@@ -127,6 +131,12 @@ class WebConsole:
             return self._refused()
         return JSONResponse(traces.listing(self.console.out))
 
+    async def api_margins(self, request: Request) -> Response:
+        """The last `bode --loop open` figure and margins per axis in the output folder (the Axis page)."""
+        if not self._authorized(request):
+            return self._refused()
+        return JSONResponse(finite(traces.margin_figures(self.console.out)))
+
     async def api_trace(self, request: Request) -> Response:
         if not self._authorized(request):
             return self._refused()
@@ -142,6 +152,35 @@ class WebConsole:
         body = await request.json()
         try:
             got = await traces.run_explain(self.console, str(body.get("name", "")), str(body.get("plant", "")))
+        except ValueError as exc:
+            return JSONResponse({"error": str(exc)}, status_code=400)
+        return JSONResponse(got)
+
+    # -- the Health page (tools/ui/health.py) ------------------------------------------------------------------
+    async def api_health(self, request: Request) -> Response:
+        if not self._authorized(request):
+            return self._refused()
+        try:
+            got = await asyncio.to_thread(self.console.health.fleet)
+        except ValueError as exc:
+            return JSONResponse({"error": str(exc)}, status_code=400)
+        return JSONResponse(finite({**got, **self.console.health.status()}))
+
+    async def api_health_axis(self, request: Request) -> Response:
+        if not self._authorized(request):
+            return self._refused()
+        q = request.query_params
+        try:
+            got = await asyncio.to_thread(self.console.health.axis, q.get("machine", ""), q.get("axis", ""))
+        except ValueError as exc:
+            return JSONResponse({"error": str(exc)}, status_code=400)
+        return JSONResponse(finite(got))
+
+    async def api_health_analyze(self, request: Request) -> Response:
+        if not self._authorized(request):
+            return self._refused()
+        try:
+            got = await self.console.health.analyze()
         except ValueError as exc:
             return JSONResponse({"error": str(exc)}, status_code=400)
         return JSONResponse(got)
@@ -163,7 +202,7 @@ class WebConsole:
         st["console"] = {"capture": None if cap is None else {"axis": cap.axis, "state": cap.state,
                                                               "seq": c.capture_seq, "detail": cap.detail},
                          "saved": [p.name for p in c.saved[-4:]], "time_s": c.m.loop.cycle * c.m.loop.dt,
-                         "axis_names": list(c.m.axes)}
+                         "axis_names": list(c.m.axes), "health": c.health.status()}
         return finite(st)
 
     # -- the websocket: status and scope out, commands in ---------------------------------------------------------

@@ -34,6 +34,26 @@ def inside(folder: Path, name: str) -> Path:
     return path
 
 
+def margin_figures(folder: Path) -> dict[str, dict[str, Any]]:
+    """The open-loop figures `drivectl bode --loop open --out FOLDER` left, per axis: the PNG, its time, and
+    the margins of its JSON beside it (tools/commissioning/margins.py ``write_open_loop``) when readable."""
+    import json
+
+    out: dict[str, dict[str, Any]] = {}
+    if not folder.is_dir():
+        return out
+    for png in folder.glob("bode-open-*.png"):
+        axis = png.stem[len("bode-open-"):]
+        entry: dict[str, Any] = {"png": png.name, "mtime": png.stat().st_mtime, "margins": None}
+        side = png.with_suffix(".json")
+        try:
+            entry["margins"] = json.loads(side.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            pass
+        out[axis] = entry
+    return out
+
+
 def is_trace(path: Path) -> bool:
     try:
         with path.open(encoding="utf-8") as fh:

@@ -84,6 +84,7 @@ function showPage(name) {
   for (const p of document.querySelectorAll(".page")) p.classList.toggle("hidden", p.id !== "page-" + name);
   for (const b of document.querySelectorAll("header nav button")) b.classList.toggle("active", b.dataset.page === name);
   if (name === "traces" || name === "explain") loadTraceList();
+  if (name === "axis") loadMargins();
   if (name === "scope") {
     Plotly.Plots.resize("scope");
     if (ui.scope.live) requestScopeDraw();
@@ -143,7 +144,8 @@ function buildAxes(names) {
       el("div", { class: "line" }, el("span", {}, "speed"), inp("speed", "", 9),
         el("span", { class: "hint" }, "(empty: the axis's max)")),
       el("div", { class: "line" }, el("span", {}, "jog"), jogBtn(-1), jogBtn(1), el("span", {}, "at"),
-        inp("jog-speed", "5mm/s", 8))));
+        inp("jog-speed", "5mm/s", 8)),
+      el("div", { class: "margins", testid: `margins-${n}` })));
   }
   const sel = $("#scope-axis");
   sel.replaceChildren(...names.map((n) => el("option", {}, n)));
@@ -429,6 +431,32 @@ async function loadTraceList() {
   if (keep) sel.value = keep;
 }
 $("#traces-refresh").addEventListener("click", loadTraceList);
+
+// the last `drivectl bode --loop open --out <this console's folder>` of each axis, on its Axis card
+async function loadMargins() {
+  let got;
+  try { got = await api("/api/margins"); } catch (e) { say(`margins: ${e.message}`, true); return; }
+  for (const n of ui.axes) {
+    const box = tid(`margins-${n}`);
+    if (!box) continue;
+    const f = got[n];
+    if (!f) {
+      box.replaceChildren(el("span", { class: "hint" },
+        `margins: run drivectl bode --axis ${n} --loop open --out <this console's folder> to see them here`));
+      continue;
+    }
+    const m = f.margins || {};
+    const v = (x, d, u) => (x === null || x === undefined ? "–" : `${Number(x).toFixed(d)}${u}`);
+    const kind = m.linear === false ? " (describing-function estimate: a nonlinear law)" : "";
+    box.replaceChildren(
+      el("div", { class: "line", testid: `margins-line-${n}` },
+        `margins (${m.controller || "?"}${kind}, ${new Date(f.mtime * 1000).toLocaleString()}): ` +
+        `GM ${v(m.gm_db, 2, " dB")} at ${v(m.gm_hz, 1, " Hz")}, PM ${v(m.pm_deg, 1, "°")} at ${v(m.pm_hz, 1, " Hz")}, ` +
+        `Ms ${v(m.ms, 2, "")}, bandwidth ${v(m.bandwidth_hz, 1, " Hz")}`),
+      el("img", { testid: `margins-png-${n}`, alt: `open loop of axis ${n}`, style: "max-width: 100%",
+        src: withToken(`/files/${encodeURIComponent(f.png)}?v=${f.mtime}`) }));
+  }
+}
 async function showTrace(name) {
   let tr;
   try { tr = await api(`/api/trace?name=${encodeURIComponent(name)}`); } catch (e) { say(`trace ${name}: ${e.message}`, true); return; }

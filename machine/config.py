@@ -126,6 +126,7 @@ fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines i
 
 # [health]
 # store = "health"              # drivectl health's store (docs/health.md); default: the user's data folder
+# baseline_runs = 3             # an axis without axes.NAME.model: its baseline is the model of its first N runs
 """
 
 
@@ -267,6 +268,8 @@ class MachineConfig:
     checks: RunChecks = field(default_factory=RunChecks)  # [checks]: when a completed run warns or faults
     #: [health] store: the health store's folder (drivectl health; relative to the file's folder)
     health_store: str | None = None
+    #: [health] baseline_runs: an axis's first runs whose model is its baseline (None: the analysis's default)
+    health_baseline_runs: int | None = None
 
     def axis(self, name: str) -> AxisConfig:
         if name not in self.axes:
@@ -318,6 +321,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
         raise ConfigError(f"{src}: {sorted(unknown)[0]}: unknown key (expected cycle_s, bus, axes, checks, health)")
     checks = _checks(data.get("checks", {}), src)
     health_store = _health(data.get("health", {}), src)
+    baseline_runs = _health_baseline_runs(data.get("health", {}), src)
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
@@ -424,22 +428,32 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks, health_store)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store, baseline_runs)
 
 
 def _health(raw: Any, src: str) -> str | None:
     """[health] store = DIR: the health store (drivectl health), a path relative to the file's folder."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: health: expected a table")
-    extra = set(raw) - {"store"}
+    extra = set(raw) - {"store", "baseline_runs"}
     if extra:
-        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store)")
+        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store, baseline_runs)")
     if "store" not in raw:
         return None
     store = Path(_string(src, "health.store", raw["store"])).expanduser()
     if not store.is_absolute() and not src.startswith("<"):
         store = Path(src).parent / store
     return str(store)
+
+
+def _health_baseline_runs(raw: dict[str, Any], src: str) -> int | None:
+    """[health] baseline_runs = N (>= 1): the first runs of an axis whose model is its baseline."""
+    value = raw.get("baseline_runs")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{src}: health.baseline_runs: expected an integer >= 1, got {value!r}")
+    return value
 
 
 def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:

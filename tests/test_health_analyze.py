@@ -53,8 +53,15 @@ def test_analyze_fits_every_effect_of_every_new_run_on_two_workers(tmp_path, cap
     out = capsys.readouterr()
     assert "0 runs fitted, 0 failed" in out.out and "first 3 runs: 2 so far" in out.err
     assert main(["health", "ingest", traces[2], "--machine", "m1", "--store", str(store)]) == 0
+
+    def interrupt(res) -> None:  # Ctrl-C as the first result is in
+        raise KeyboardInterrupt
+
+    with Store(store) as s, pytest.raises(KeyboardInterrupt):
+        analyze(s, workers=2, on_fit=interrupt)
+    assert len({f[0] for f in _fits(store)}) == 1  # what finished is kept
     assert main(["health", "analyze", "--store", str(store), "--workers", "2"]) == 0
-    assert "3 runs fitted, 0 failed" in capsys.readouterr().out
+    assert "2 runs fitted, 0 failed" in capsys.readouterr().out  # incremental: the other two
     fits = _fits(store)
     runs = {f[0] for f in fits}
     assert len(runs) == 3

@@ -138,13 +138,14 @@ def pending(store: Any) -> list[dict[str, Any]]:
 def analyze(store: Any, *, scheduler: str | None = None, workers: int | None = None,
             models: dict[str, str] | None = None, baseline_runs: int = BASELINE_RUNS, progress: bool = False,
             on_error: Callable[[str], None] | None = None,
-            on_note: Callable[[str], None] | None = None) -> tuple[int, int]:
+            on_note: Callable[[str], None] | None = None,
+            on_fit: Callable[[RunFits], None] | None = None) -> tuple[int, int]:
     """Fit every run of ``store`` without fits against its axis's baseline, on a Dask cluster:
     ``scheduler`` (``tcp://HOST:8786``), else an embedded LocalCluster of ``workers`` processes (default:
     the cores that are free). ``models``: axis -> the configured commissioning model (the baseline where
     given); else the baseline is the model of the axis's first ``baseline_runs`` runs (:func:`baselines`).
     Returns (runs fitted, runs that failed); runs of an axis still short of its first runs wait (said
-    through ``on_note``)."""
+    through ``on_note``). ``on_fit`` sees each run's result as it comes (bench/health.py: its CPU time)."""
     todo = pending(store)
     if not todo:
         return 0, 0
@@ -179,6 +180,8 @@ def analyze(store: Any, *, scheduler: str | None = None, workers: int | None = N
                 done += 1
             if bar is not None:
                 bar.update()
+            if on_fit:
+                on_fit(res)
     finally:
         if bar is not None:
             bar.close()

@@ -168,3 +168,14 @@ def test_a_fit_carries_an_uncertainty_that_covers_the_spread_over_noise_seeds(tm
 def test_analyze_on_a_store_with_nothing_new_starts_no_cluster(tmp_path):
     with Store(tmp_path / "store") as s:
         assert analyze(s, scheduler="tcp://127.0.0.1:9") == (0, 0)  # no connection tried: nothing to do
+
+
+def test_health_baseline_runs_in_the_configuration(tmp_path):
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, ConfigError, load_config
+
+    cfg = tmp_path / "machine.toml"
+    cfg.write_text(DEFAULT_CONFIG_TOML + "\n[health]\nbaseline_runs = 5\n")
+    assert load_config(str(cfg)).health_baseline_runs == 5
+    cfg.write_text(DEFAULT_CONFIG_TOML + "\n[health]\nbaseline_runs = 0\n")
+    with pytest.raises(ConfigError, match=r"machine.toml: health.baseline_runs: expected an integer >= 1, got 0"):
+        load_config(str(cfg))

@@ -2,9 +2,11 @@
 
 Each run gets one fit per effect of the vocabulary (docs/effects.md), each by the fitter of
 ``drivectl explain`` of that name (tools/explain/fit.py ``FITTERS``, ``run_fitter``: one home for the
-fitting), on top of the run's baseline. A worker reads the run's Parquet file itself (no sample goes
-through the scheduler) and returns the fitted parameters; this process alone writes the catalog, one
-transaction per run, so an interrupted analysis keeps every run that finished.
+fitting, and for each value's uncertainty, ``Fit.uncertainty``), on top of its axis's baseline: the
+configured commissioning model, else the model of the axis's first runs (:func:`baselines`, kept in the
+catalog). A worker reads the run's Parquet file itself (no sample goes through the scheduler) and
+returns the fitted parameters; this process alone writes the catalog, one transaction per run, so an
+interrupted analysis keeps every run that finished. docs/health.md.
 """
 
 from __future__ import annotations

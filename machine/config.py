@@ -428,7 +428,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks, health_store, baseline_runs)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_baseline_runs=baseline_runs)
 
 
 def _health(raw: Any, src: str) -> str | None:

@@ -132,6 +132,7 @@ fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines i
 # viscous.scale = 1.5
 # [axes.x.health]
 # profile = "fingerprint"       # drivectl health run's profile (library name, or a TOML file beside this one)
+# baseline_runs = 3             # an axis without axes.NAME.model: its baseline is the model of its first N runs
 """
 
 
@@ -283,6 +284,8 @@ class MachineConfig:
     health_limits: dict[str, float] = field(default_factory=dict)
     #: where the wall-clock servo loop runs: "process" (its own) or "thread" (the program's); None: the default
     loop: str | None = None
+    #: [health] baseline_runs: an axis's first runs whose model is its baseline (None: the analysis's default)
+    health_baseline_runs: int | None = None
 
     def health_limits_of(self, axis: str) -> dict[str, float]:
         """The health limits of ``axis``: the documented defaults, [health.limits], [axes.NAME.health.limits]."""
@@ -343,6 +346,7 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
     loop = _choice(src, "loop", data["loop"], LOOPS) if "loop" in data else None
     checks = _checks(data.get("checks", {}), src)
     health_store, health_limits = _health(data.get("health", {}), src)
+    baseline_runs = _health_baseline_runs(data.get("health", {}), src)
     bus_raw = data.get("bus", {})
     if not isinstance(bus_raw, dict):
         raise ConfigError(f"{src}: bus: expected a table")
@@ -450,7 +454,8 @@ def parse_config(data: dict[str, Any], src: str) -> MachineConfig:
             raise ConfigError(f"{src}: axes.{name}.node_id: {ac.node_id} is also axes.{owner[ac.node_id]}.node_id "
                               "(two axes share a node_id)")
         owner[ac.node_id] = name
-    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_limits, loop)
+    return MachineConfig(src, cycle, axes, bus, checks, health_store, health_limits, loop,
+                         health_baseline_runs=baseline_runs)
 
 
 def _health(raw: Any, src: str) -> tuple[str | None, dict[str, float]]:
@@ -460,9 +465,9 @@ def _health(raw: Any, src: str) -> tuple[str | None, dict[str, float]]:
 
     if not isinstance(raw, dict):
         raise ConfigError(f"{src}: health: expected a table")
-    extra = set(raw) - {"store", "limits"}
+    extra = set(raw) - {"store", "limits", "baseline_runs"}
     if extra:
-        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store, limits)")
+        raise ConfigError(f"{src}: health.{sorted(extra)[0]}: unknown key (known: store, limits, baseline_runs)")
     try:
         limits = parse_limits(src, "health.limits", raw.get("limits"))
     except InputError as exc:
@@ -496,6 +501,16 @@ def _axis_health(src: str, key: str, raw: Any) -> Any:
             raise ConfigError(f"{src}: {key}.profile: {exc}") from None
         health = replace(health, profile=profile)
     return health
+
+
+def _health_baseline_runs(raw: dict[str, Any], src: str) -> int | None:
+    """[health] baseline_runs = N (>= 1): the first runs of an axis whose model is its baseline."""
+    value = raw.get("baseline_runs")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{src}: health.baseline_runs: expected an integer >= 1, got {value!r}")
+    return value
 
 
 def _sdo_init(src: str, key: str, raw: Any) -> tuple[tuple[int, int, int], ...]:

@@ -159,6 +159,13 @@ def choose_workers() -> int:
             raise ExplainError(f"DRIVECTL_EXPLAIN_WORKERS: expected an integer, got {env!r}") from None
     if threading.active_count() > 1 or not hasattr(os, "fork"):
         return 1
+    return free_cores()
+
+
+def free_cores() -> int:
+    """One core for this process and each core that is at least half free (cores minus the 1-minute load),
+    at least 1 (choose_workers; drivectl health's embedded Dask cluster, whose workers are spawned, not
+    forked)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     try:
         load = os.getloadavg()[0]

@@ -4,6 +4,9 @@ Each fitter takes the data held against the current model (``prep.spec``: the no
 effects named so far) and returns the best parameters of its effect on top of it, by grids of
 candidate plants simulated at once (tools/explain/sim.py) and refined around the best point. The
 grids and why: docs/explain.md.
+
+Each fit also carries the standard uncertainty of its parameters (:func:`uncertainty`), read from the
+per-window errors of its last, exact grid: no simulation beyond the fit's own (docs/health.md).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 
 from drivectl.plant_emulator.effects import EFFECTS
 from drivectl.plant_emulator.models import PlantSpec
-from drivectl.tools.explain.data import Prepared, gaps_of
+from drivectl.tools.explain.data import Prepared, gaps_of, window_mse
 from drivectl.tools.explain.sim import BatchSim, make_windows
 
 #: substeps per cycle in the coarse rounds of a fit (the plant's own, 10-20, in the last round):
@@ -46,6 +49,9 @@ class Fit:
     extra: dict[str, float] = field(default_factory=dict)
     note: str = ""
     key: str = ""
+    #: standard uncertainty (one sigma, the parameter's unit) of each of ``params`` (:func:`uncertainty`;
+    #: inf where the last grid cannot tell the values apart); empty for a fit not made on a grid
+    uncertainty: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.key = self.key or self.effect
@@ -66,6 +72,72 @@ def _scan(prep: Prepared, effect: str, grid: list[dict[str, float]], substeps: i
     return gaps_of(prep, [prep.spec.with_effect(effect, **p) for p in grid], substeps)
 
 
+def _scan_windows(prep: Prepared, effect: str, grid: list[dict[str, float]]) -> np.ndarray:
+    """Per-window mean squared error (W, C) of each grid point, at the plant's own substeps (the last,
+    exact round: its gaps are ``sqrt(mean over W)``, as :func:`_scan`'s)."""
+    return window_mse(prep, [prep.spec.with_effect(effect, **p) for p in grid])
+
+
+def uncertainty(points: np.ndarray, mse: np.ndarray, best: int, names: tuple[str, ...]) -> dict[str, float]:
+    """Standard uncertainty of the parameters of the best grid point, from the per-window errors of
+    the grid: the sandwich (M-estimator) covariance of the least mean per-window error.
+
+    A fit minimises F(x) = mean over windows w of m_w(x), the window's mean squared error. Each window
+    starts from the measured state, so the windows' errors are independent samples of the noise
+    (within a window they are strongly correlated, which is why the samples are not counted one by
+    one). Near the best point each m_w is a quadratic fitted over the grid (one least squares for all
+    windows at once); with H the mean Hessian and S the covariance of the windows' gradients at the
+    best point, the best point's covariance is ``H^-1 S H^-1 / W`` (the noise moves the mean gradient
+    by sqrt(S / W), the curvature turns that into a move of the minimum). The grid's own resolution
+    (a step d: d / sqrt 12) is added in quadrature. Where the grid cannot tell its points apart (flat
+    or concave along a parameter) that parameter's uncertainty is inf: the run says nothing about it.
+
+    ``points``: (C, d) parameter values of the grid (``names`` their order), ``mse``: (W, C).
+    """
+    X = np.asarray(points, dtype=float).reshape(len(points), -1)
+    d = X.shape[1]
+    x0 = X[best]
+    half = 0.5 * np.ptp(X, axis=0)
+    scale = np.where(half > 0, half, 1.0)
+    u = (X - x0) / scale
+    cols = [np.ones(len(u))] + [u[:, a] for a in range(d)]
+    pairs = [(a, b) for a in range(d) for b in range(a, d)]
+    cols += [u[:, a] * u[:, b] for a, b in pairs]
+    Q = np.column_stack(cols)
+    inf = {n: math.inf for n in names}
+    W = mse.shape[0]
+    if W < 2 or np.linalg.matrix_rank(Q) < Q.shape[1]:
+        return inf  # too few distinct values of a parameter to read a curvature
+    coef, *_ = np.linalg.lstsq(Q, np.asarray(mse, dtype=float).T, rcond=None)  # (K, W)
+    grads = coef[1:1 + d]  # (d, W): each window's gradient at the best point
+    c = coef[1 + d:].mean(axis=1)
+    H = np.zeros((d, d))
+    for (a, b), v in zip(pairs, c, strict=True):
+        if a == b:
+            H[a, a] = 2.0 * v
+        else:
+            H[a, b] = H[b, a] = v
+    S = np.atleast_2d(np.cov(grads, ddof=1))
+    var = np.full(d, math.inf)
+    try:
+        ok = bool(np.all(np.linalg.eigvalsh(H) > 0))
+    except np.linalg.LinAlgError:
+        ok = False
+    if ok:
+        Hi = np.linalg.inv(H)
+        var = np.diag(Hi @ S @ Hi) / W
+    else:  # not a minimum in every direction jointly: each parameter alone where it has a curvature
+        diag = np.diag(H)
+        pos = diag > 0
+        var[pos] = np.diag(S)[pos] / (diag[pos] ** 2 * W)
+    out = {}
+    for a, n in enumerate(names):
+        vals = np.unique(X[:, a])
+        step = float(np.min(np.diff(vals))) if len(vals) > 1 else 0.0
+        out[n] = float(math.sqrt(max(var[a], 0.0) * scale[a] ** 2 + step * step / 12.0))
+    return out
+
+
 def _fit_1d(prep: Prepared, effect: str, name: str, values: np.ndarray,
             fixed: dict[str, float] | None = None, log: bool = False, rounds: int = 2,
             lo: float | None = None, hi: float | None = None, coarse: int = COARSE_SUBSTEPS) -> Fit:
@@ -77,14 +149,19 @@ def _fit_1d(prep: Prepared, effect: str, name: str, values: np.ndarray,
     fixed = fixed or {}
     values = np.asarray(values, dtype=float)
     best_v, best_g = math.nan, math.inf
+    sigma: dict[str, float] = {}
     for r in range(rounds + 1):
-        sub = None if r == rounds else coarse
-        gaps = _scan(prep, effect, [{**fixed, name: float(v)} for v in values], sub)
-        i = int(np.argmin(gaps))
+        grid = [{**fixed, name: float(v)} for v in values]
         if r == rounds:
             # only the last round's gaps are exact; it includes the best coarse point
+            mse = _scan_windows(prep, effect, grid)
+            gaps = np.sqrt(np.mean(mse, axis=0))
+            i = int(np.argmin(gaps))
             best_v, best_g = float(values[i]), float(gaps[i])
+            sigma = uncertainty(values[:, None], mse, i, (name,))
             break
+        gaps = _scan(prep, effect, grid, coarse)
+        i = int(np.argmin(gaps))
         a = values[max(i - 1, 0)]
         b = values[min(i + 1, len(values) - 1)]
         values = np.exp(np.linspace(math.log(a), math.log(b), 9)) if log else np.linspace(a, b, 9)
@@ -92,7 +169,7 @@ def _fit_1d(prep: Prepared, effect: str, name: str, values: np.ndarray,
             values = np.maximum(values, lo)
         if hi is not None:
             values = np.minimum(values, hi)
-    return Fit(effect, {**fixed, name: best_v}, best_g)
+    return Fit(effect, {**fixed, name: best_v}, best_g, uncertainty=sigma)
 
 
 def _fit_2d(prep: Prepared, effect: str, names: tuple[str, str], g1: np.ndarray, g2: np.ndarray,
@@ -101,13 +178,19 @@ def _fit_2d(prep: Prepared, effect: str, names: tuple[str, str], g1: np.ndarray,
     best: tuple[float, float] = (math.nan, math.nan)
     best_g = math.inf
     a1, a2 = np.asarray(g1, float), np.asarray(g2, float)
+    sigma: dict[str, float] = {}
     for r in range(rounds + 1):
         grid = [{names[0]: float(x), names[1]: float(y)} for x in a1 for y in a2]
-        gaps = _scan(prep, effect, grid, None if r == rounds else coarse).reshape(len(a1), len(a2))
-        i, j = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
         if r == rounds:
-            best, best_g = (float(a1[i]), float(a2[j])), float(gaps[i, j])
+            mse = _scan_windows(prep, effect, grid)
+            flat = np.sqrt(np.mean(mse, axis=0))
+            k = int(np.argmin(flat))
+            i, j = np.unravel_index(k, (len(a1), len(a2)))
+            best, best_g = (float(a1[i]), float(a2[j])), float(flat[k])
+            sigma = uncertainty(np.array([[g[names[0]], g[names[1]]] for g in grid]), mse, k, names)
             break
+        gaps = _scan(prep, effect, grid, coarse).reshape(len(a1), len(a2))
+        i, j = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
 
         def around(arr: np.ndarray, k: int, is_log: bool) -> np.ndarray:
             lo_, hi_ = arr[max(k - 1, 0)], arr[min(k + 1, len(arr) - 1)]
@@ -116,7 +199,7 @@ def _fit_2d(prep: Prepared, effect: str, names: tuple[str, str], g1: np.ndarray,
             return np.linspace(lo_, hi_, 5)
 
         a1, a2 = around(a1, i, log[0]), around(a2, j, log[1])
-    return Fit(effect, {names[0]: best[0], names[1]: best[1]}, best_g)
+    return Fit(effect, {names[0]: best[0], names[1]: best[1]}, best_g, uncertainty=sigma)
 
 
 def _coulomb_level(prep: Prepared) -> tuple[float, float]:
@@ -276,7 +359,8 @@ def fit_periodic(prep: Prepared) -> Fit:
     q, v = prep.pos[ok], prep.vel[ok]
     y = r[ok]
     if len(y) < 200:
-        return Fit("periodic", {"amplitude": 0.0, "period": 0.01}, math.inf, {"phase": 0.0})
+        return Fit("periodic", {"amplitude": 0.0, "period": 0.01}, math.inf, {"phase": 0.0},
+                   uncertainty={"amplitude": math.inf, "period": math.inf})
     # nuisance regressors: what other effects would leave in the residual (offset, Coulomb and viscous
     # per direction, spring, mass error through the acceleration)
     acc = np.gradient(prep.vel, prep.dt)[ok]
@@ -298,16 +382,24 @@ def fit_periodic(prep: Prepared) -> Fit:
     period = 2 * math.pi / k
     # refine amplitude (the residual regression sees the force through the closed loop's noise)
     grid = []
+    points = []  # the same points with the phase not wrapped (a quadratic across 0 = 2 pi)
     for fa in (0.7, 0.85, 1.0, 1.15, 1.3):
         for dp in (-0.004, 0.0, 0.004):
             for dph in (-0.3, 0.0, 0.3):
                 grid.append({"amplitude": amp * fa, "period": period * (1 + dp),
                              "phase": (phase + dph) % (2 * math.pi)})
-    gaps = _scan(prep, "periodic", grid)
+                points.append((amp * fa, period * (1 + dp), phase + dph))
+    mse = _scan_windows(prep, "periodic", grid)
+    gaps = np.sqrt(np.mean(mse, axis=0))
     i = int(np.argmin(gaps))
     p = grid[i]
+    sigma = uncertainty(np.array(points), mse, i, ("amplitude", "period", "phase"))
+    if not p["amplitude"] > 2.0 * sigma["amplitude"]:
+        # no force to speak of: its period is the scan's highest noise peak, anywhere in the band
+        sigma["period"] = math.inf
     return Fit("periodic", {"amplitude": p["amplitude"], "period": p["period"]}, float(gaps[i]),
-               {"phase": p["phase"]}, note=f"period scan peak at {period * 1e3:.3f} mm")
+               {"phase": p["phase"]}, note=f"period scan peak at {period * 1e3:.3f} mm",
+               uncertainty={"amplitude": sigma["amplitude"], "period": sigma["period"]})
 
 
 #: fitter key -> fitter; the key names the way an effect is added (viscous has two: one scale, or per direction)

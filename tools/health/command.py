@@ -31,10 +31,11 @@ def add_health_parser(sub: argparse._SubParsersAction) -> None:
     i.add_argument("--axis", help="the axis, where a file does not say (bus logs)")
     _store_arg(i)
     a = hs.add_parser("analyze", help="fit every run without fits, on Dask",
-                      description="Fit every run of the store that has no fits yet against its baseline (the "
-                      "configuration's axes.NAME.model, else the model the run names): one fit per effect of "
-                      "the vocabulary, by explain's fitters, spread over Dask workers that read the Parquet "
-                      "files themselves. Interrupted, it keeps the runs that finished.")
+                      description="Fit every run of the store that has no fits yet against its axis's baseline "
+                      "(the configuration's axes.NAME.model, else the model of the axis's first runs, [health] "
+                      "baseline_runs, default 3): one fit per effect of the vocabulary with its uncertainty, by "
+                      "explain's fitters, spread over Dask workers that read the Parquet files themselves. "
+                      "Interrupted, it keeps the runs that finished.")
     _store_arg(a)
     a.add_argument("--scheduler", metavar="ADDRESS", help="a running dask scheduler (tcp://HOST:8786); default: "
                    "an embedded LocalCluster on the cores that are free")
@@ -128,17 +129,23 @@ def _analyze(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers: expected an integer >= 1, got {args.workers}")
     root, cfg = store_path(args)
+    from drivectl.tools.health.analyze import BASELINE_RUNS
+
     models = {name: ax.model for name, ax in cfg.axes.items() if ax.model}
-    errors: list[str] = []
+    first = cfg.health_baseline_runs or BASELINE_RUNS
+    waiting: list[str] = []
 
     def say(line: str) -> None:
-        errors.append(line)
         print(f"drivectl: {line}", file=sys.stderr)
+
+    def note(line: str) -> None:
+        waiting.append(line)
+        print(f"health analyze: {line}", file=sys.stderr)
 
     with Store(root) as store:
         try:
             done, failed = analyze(store, scheduler=args.scheduler, workers=args.workers, models=models,
-                                   progress=sys.stderr.isatty(), on_error=say)
+                                   baseline_runs=first, progress=sys.stderr.isatty(), on_error=say, on_note=note)
         except KeyboardInterrupt:
             print("drivectl: health analyze: interrupted; the runs that finished keep their fits", file=sys.stderr)
             return 130

@@ -23,12 +23,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivectl.errors import InputError
 from drivectl.tools.health.deps import need
 from drivectl.tracefile.format import Trace, TraceError, atomic_write_bytes, file_sha256
 from drivectl.tracefile.stream import clean_stale, safe_name
+
+if TYPE_CHECKING:
+    from drivectl.plant_emulator.models import PlantSpec
 
 CATALOG = "catalog.duckdb"
 SAMPLES = "samples"
@@ -60,6 +63,14 @@ CREATE TABLE IF NOT EXISTS fits (
     uncertainty DOUBLE,
     gap DOUBLE,
     PRIMARY KEY (run, effect, parameter)
+);
+CREATE TABLE IF NOT EXISTS baselines (
+    machine VARCHAR NOT NULL,
+    axis VARCHAR NOT NULL,
+    model VARCHAR NOT NULL,            -- the baseline as a plant TOML (drivectl's plant file format)
+    runs VARCHAR NOT NULL,             -- JSON list of the sha256 of the runs it is the model of
+    made_utc TIMESTAMP NOT NULL,
+    PRIMARY KEY (machine, axis)
 );
 CREATE OR REPLACE VIEW runs_ordered AS
     SELECT row_number() OVER (PARTITION BY machine, axis ORDER BY started_utc, sha256) - 1 AS run_index, *
@@ -145,6 +156,38 @@ class Store:
         cur = self.con.execute("SELECT * FROM runs_ordered ORDER BY machine, axis, run_index")
         names = [d[0] for d in cur.description]
         return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+
+    def first_runs(self, machine: str, axis: str, n: int) -> list[dict[str, Any]]:
+        """The first ``n`` runs of an axis in time order (fewer when it has fewer)."""
+        cur = self.con.execute("SELECT * FROM runs_ordered WHERE machine = ? AND axis = ? AND run_index < ? "
+                               "ORDER BY run_index", [machine, axis, n])
+        names = [d[0] for d in cur.description]
+        return [dict(zip(names, row, strict=True)) for row in cur.fetchall()]
+
+    def baseline(self, machine: str, axis: str) -> PlantSpec | None:
+        """The baseline kept for an axis (drivectl health analyze), or None."""
+        import tomllib
+
+        from drivectl.plant_emulator.models import plant_from_mapping
+
+        row = self.con.execute("SELECT model FROM baselines WHERE machine = ? AND axis = ?", [machine, axis]).fetchone()
+        if row is None:
+            return None
+        return plant_from_mapping(tomllib.loads(row[0]), f"{self.root / CATALOG}: baselines {machine}/{axis}",
+                                  f"baseline {machine}/{axis}")
+
+    def set_baseline(self, machine: str, axis: str, spec: PlantSpec, runs: list[str]) -> None:
+        """Keep an axis's baseline (one transaction)."""
+        text = spec.to_toml(f"drivectl health: the baseline of {machine}/{axis}, the model of its first "
+                            f"{len(runs)} runs")
+        self.con.begin()
+        try:
+            self.con.execute("INSERT OR REPLACE INTO baselines VALUES (?, ?, ?, ?, ?)",
+                             [machine, axis, text, json.dumps(runs), datetime.now(UTC).replace(tzinfo=None)])
+            self.con.commit()
+        except BaseException:
+            self.con.rollback()
+            raise
 
     def add_fits(self, sha: str, rows: list[tuple[str, str, float, float | None, float]]) -> None:
         """A run's fits (effect, parameter, value, uncertainty, gap), in one transaction."""

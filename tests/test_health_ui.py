@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 import urllib.request
 from pathlib import Path
 
@@ -29,14 +28,16 @@ def _post(url: str) -> dict:
 
 def test_the_health_page_runs_a_fingerprint_into_the_store_and_shows_its_trends(tmp_path):
     import drivectl
-    from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
     from drivectl.tools.ui.command import bind, start_in_thread, url_of
     from drivectl.tools.ui.console import USER_ERRORS, Console
     from drivectl.tools.ui.server import WebConsole
 
-    data = tomllib.loads(DEFAULT_CONFIG_TOML)
-    data["axes"]["x"]["health"] = {"profile": str(SHORT)}
-    cfg = parse_config(data, "<test>")
+    # one run is the axis's baseline here (the default waits for three): the console's analysis, a child
+    # process, reads this file
+    path = tmp_path / "machine.toml"
+    path.write_text(DEFAULT_CONFIG_TOML + f'\n[health]\nbaseline_runs = 1\n\n[axes.x.health]\nprofile = "{SHORT}"\n')
+    cfg = load_config(path)
     out, store = tmp_path / "traces", tmp_path / "store"
     out.mkdir()
     m = drivectl.connect(cfg, axes=["x"], fault_dir=out)

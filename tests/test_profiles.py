@@ -23,7 +23,7 @@ from drivectl.profiles import (
 )
 
 TOL = 1e-9
-LIBRARY = ["back-and-forth", "circle", "seed-000", "short-move"]
+LIBRARY = ["back-and-forth", "circle", "fingerprint", "seed-000", "short-move"]
 
 
 def seed000() -> PointToPoint:

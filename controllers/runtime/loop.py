@@ -54,6 +54,7 @@ from drivectl.controllers.runtime.cycle import (
     Fault,
     Limits,
     StopReason,
+    bridge,
     check_and_write,
     control,
     sample_axis,
@@ -369,6 +370,7 @@ class ServoLoop:
             ref = run.next()
         else:
             ref = rt.traj.next()
+        fb = bridge(ch, ref, fb)
         u = control(ch, ref, fb)
         pos = fb.position
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u

@@ -36,6 +36,7 @@ from drivectl.controllers.runtime.cycle import (
     LimitError,
     Limits,
     StopReason,
+    bridge,
     check_and_write,
     control,
     sample_axis,
@@ -319,7 +320,9 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 fb = sample_axis(ch, k)
                 pr, vr, ar, jr = refs[i]
                 r = pr[j]
-                u = control(ch, Reference(r, vr[j], ar[j], jr[j]), fb)
+                ref = Reference(r, vr[j], ar[j], jr[j])
+                fb = bridge(ch, ref, fb)
+                u = control(ch, ref, fb)
                 rec.record(i, k, fb, u, r)
                 check_and_write(ch, k, dt, fb.position, r, u)
             out.cycles = k + 1

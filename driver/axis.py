@@ -108,6 +108,12 @@ class Axis:
     def write(self, effort: float) -> None:
         raise NotImplementedError
 
+    def stale(self) -> None:
+        """The sample :meth:`read` just returned answered an earlier SYNC than this cycle's (the cycle found it:
+        controllers/runtime/cycle.py ``bridge``): the cycle is bridged and counted as one without a sample. Only
+        a transport that can lose samples (``lost_cycles``) is ever told."""
+        self.lost_cycles += 1
+
     def enable(self) -> None:
         raise NotImplementedError
 

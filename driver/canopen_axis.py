@@ -488,6 +488,17 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         fb = self._last = Feedback((cycle - 1) * self.dt, last.position + last.velocity * since, last.velocity)
         return fb
 
+    def stale(self) -> None:
+        """The frame taken for this cycle's sample answered the SYNC before (the cycle found it by the position:
+        controllers/runtime/cycle.py ``bridge``): a drive late past the budget twice running, which the count
+        cannot tell from one lost answer. Counted as a late frame and a bridged cycle, with the same limit."""
+        self.late_total += 1
+        self.lost_total += 1
+        self.lost_cycles += 1
+        if self.lost_cycles > self._lost_limit:
+            raise AxisError(f"axis {self.name}: node {self.node_id}: no TPDO for {self.lost_cycles} cycles "
+                            f"(limit {self._lost_limit})", FaultKind.TPDO_TIMEOUT)
+
     @property
     def torque_actual(self) -> float:
         """0x6077 of the latest TPDOs, in the effort unit (NaN when the mapping does not carry it)."""

@@ -137,6 +137,8 @@ class Channel:
     #: None: no real sample yet
     held_error: float | None = field(default=None, init=False, repr=False)
     held_velocity_error: float = field(default=0.0, init=False, repr=False)
+    #: the position the last cycle bridged with (m); None: the last cycle had a real sample
+    bridged_at: float | None = field(default=None, init=False, repr=False)
 
 
 class CycleFault(Exception):
@@ -169,18 +171,43 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
     return fb
 
 
-def bridge(ch: Channel, ref: Reference, fb: Feedback) -> Feedback:
+#: a first sample after bridged cycles that lies nearer the last bridged cycle's position than this one's, the
+#: two this far apart (m), answered the SYNC before: beyond an encoder's and a tracking error's noise, below
+#: what a sample that old costs (at 74 mm/s one slot is 74 um; across a late wake-up 8-10 slots, 0.6-0.7 mm)
+STALE_M = 50e-6
+
+
+def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int) -> Feedback:
     """A bridged cycle's sample (the drive's TPDOs lost or late: ``axis.lost_cycles``) as the axis following its
     reference with the tracking error of its last real sample; a real sample is returned as it is and its error
     kept. The axis itself can only extrapolate at its last velocity, which knows nothing of the reference: on a
     decelerating move bridged for tens of ms the law then saw the axis ahead of a reference it was following
     and braked it hard on a guess (x 1.3 mm behind after three lost answers at 2 ms; docs/timing.md). Held, the
-    error is what was measured last: the law adds no correction on a guess, its feedforward goes on."""
-    if ch.axis.lost_cycles:
-        held = ch.held_error
+    error is what was measured last: the law adds no correction on a guess, its feedforward goes on.
+
+    The first real sample after bridged cycles is judged by which cycle's position it fits: nearer the last
+    bridged one's (more than :data:`STALE_M` from this one's), it answered the SYNC before, a drive late past
+    the budget twice running (docs/timing.md), and this cycle is bridged too (``axis.stale()``; CycleFault past
+    the axis's limit of bridged cycles)."""
+    axis = ch.axis
+    held = ch.held_error
+    if axis.lost_cycles:
         if held is None:
             return fb
-        return Feedback(fb.time, ref.position - held, ref.velocity - ch.held_velocity_error)
+        pos = ch.bridged_at = ref.position - held
+        return Feedback(fb.time, pos, ref.velocity - ch.held_velocity_error)
+    before = ch.bridged_at
+    if before is not None:
+        ch.bridged_at = None
+        now = ref.position - held
+        if (now - before > STALE_M or before - now > STALE_M) and abs(fb.position - before) < abs(fb.position - now):
+            try:
+                axis.stale()
+            except AxisError as exc:
+                raise CycleFault(StopReason.FAULT, Fault(exc.kind or FaultKind.AXIS_ERROR, axis.name, k, str(exc)),
+                                 False) from None
+            ch.bridged_at = now
+            return Feedback(fb.time, now, ref.velocity - ch.held_velocity_error)
     ch.held_error = ref.position - fb.position
     ch.held_velocity_error = ref.velocity - fb.velocity
     return fb

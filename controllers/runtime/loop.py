@@ -370,7 +370,7 @@ class ServoLoop:
             ref = run.next()
         else:
             ref = rt.traj.next()
-        fb = bridge(ch, ref, fb)
+        fb = bridge(ch, ref, fb, rt.servo_k)
         u = control(ch, ref, fb)
         pos = fb.position
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u

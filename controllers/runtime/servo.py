@@ -321,7 +321,7 @@ def _run_cycles(plan: RunPlan, rec: Recording, request: StopRequest, pacer: Pace
                 pr, vr, ar, jr = refs[i]
                 r = pr[j]
                 ref = Reference(r, vr[j], ar[j], jr[j])
-                fb = bridge(ch, ref, fb)
+                fb = bridge(ch, ref, fb, k)
                 u = control(ch, ref, fb)
                 rec.record(i, k, fb, u, r)
                 check_and_write(ch, k, dt, fb.position, r, u)

@@ -438,27 +438,34 @@ def add_tune_parser(subparsers: Any) -> argparse.ArgumentParser:
 def _cmd_targets(args: argparse.Namespace, cfg: MachineConfig, targets: dict[str, float]) -> int:
     """`tune --target`: tools/commissioning/tune_margins.py."""
     from drivectl.tools.commissioning import tune_margins as tm
-    from drivectl.tracefile.format import atomic_write_text
 
     res = tm.tune_to_targets(cfg, args.axis, targets, controller=args.controller, objective=args.objective,
                              candidates=args.candidates, seed=args.seed, corners=args.corners, spread=args.spread,
                              verify=not args.no_verify, sim=args.sim, seconds=args.seconds, weight=args.weight,
                              progress=sys.stderr.isatty())
+    note = f"tuned by drivectl tune --target {tm.target_text(res.targets)}"
+    return _write_result(args, res, tm.settings_toml(res), note, tm.report(res))
+
+
+def _write_result(args: argparse.Namespace, res: Any, toml_text: str, note: str, text: str) -> int:
+    """The tuned gains out: the TOML file (atomically), --write-config's merge, the report or --json; exit 1
+    when the verification run was stopped."""
+    from drivectl.tracefile.format import atomic_write_text
+
     out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
-    atomic_write_text(out, tm.settings_toml(res))
+    atomic_write_text(out, toml_text)
     merged = ""
-    if getattr(args, "write_config", None) is not None:
+    if getattr(args, "write_config", None) is not None:  # machine/config_io.py: comments kept, old file backed up
         from drivectl.machine.config_io import merge_into, target_file
 
         target = target_file(args.write_config, getattr(args, "config", None))
-        backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
-                            note=f"tuned by drivectl tune --target {tm.target_text(res.targets)}")
+        backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings, note=note)
         merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
             f" (old file kept as {backup})" if backup else "")
     if args.json:
         print(json.dumps(res.to_json()))
     else:
-        print(tm.report(res), end="")
+        print(text, end="")
         print(f"wrote {out}")
         if merged:
             print(merged)
@@ -474,7 +481,6 @@ def cmd_tune(args: argparse.Namespace) -> int:
     axis; 2 bad input, with one line on stderr (the code each error carries, drivectl/errors.py)."""
     from drivectl.machine.build import with_model
     from drivectl.machine.config import ConfigError, load_config
-    from drivectl.tracefile.format import atomic_write_text
 
     cfg = with_model(load_config(getattr(args, "config", None)), args.axis, getattr(args, "model", None))
     if args.out and Path(args.out).is_dir():  # before the search: the gains could not be written after it
@@ -493,25 +499,5 @@ def cmd_tune(args: argparse.Namespace) -> int:
     res = tune(cfg, args.axis, controller=args.controller, candidates=args.candidates, seconds=args.seconds,
                seed=args.seed, jobs=args.jobs, weight=args.weight, verify=not args.no_verify, sim=args.sim,
                progress=sys.stderr.isatty(), corners=args.corners, spread=args.spread)
-    out = Path(args.out) if args.out else Path("traces") / f"tune-{res.axis}.toml"
-    atomic_write_text(out, settings_toml(res))
-    merged = ""
-    if getattr(args, "write_config", None) is not None:  # machine/config_io.py: comments kept, old file backed up
-        from drivectl.machine.config_io import merge_into, target_file
-
-        target = target_file(args.write_config, getattr(args, "config", None))
-        backup = merge_into(target, res.axis, {"controller": res.controller}, res.settings,
-                            note=f"tuned by drivectl tune ({res.candidates} candidates)")
-        merged = f"merged axes.{res.axis}.controller_settings into {target}" + (
-            f" (old file kept as {backup})" if backup else "")
-    if args.json:
-        print(json.dumps(res.to_json()))
-    else:
-        print(report(res), end="")
-        print(f"wrote {out}")
-        if merged:
-            print(merged)
-    if res.measured is not None and not res.measured.ok:
-        print(f"drivectl: verification stopped: {res.measured.detail}", file=sys.stderr)
-        return 1
-    return 0
+    return _write_result(args, res, settings_toml(res), f"tuned by drivectl tune ({res.candidates} candidates)",
+                         report(res))

@@ -208,10 +208,9 @@ def cmd_ui(args: Any) -> int:
             why = open_browser(url)
             if why:
                 print(f"drivectl: {why}", file=sys.stderr, flush=True)
-        try:
-            server.run(sockets=[sock])
-        except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it caught, once it has shut down
-            pass
+        server.run(sockets=[sock])
+    except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it caught, once it has shut down; one that came
+        pass  # before its handler was in place (the URL is out, a script sends SIGINT at once) ends it the same
     finally:
         signal.signal(signal.SIGTERM, old)
         states = console.close()

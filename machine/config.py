@@ -127,12 +127,12 @@ fault_min_cycles = 1000         # 1 s at 1 kHz: 5 % of it, 50 missed deadlines i
 
 # [health]
 # store = "health"              # drivectl health's store (docs/health.md); default: the user's data folder
+# baseline_runs = 3             # an axis without axes.NAME.model: its baseline is the model of its first N runs
 # [health.limits]               # where a wear trend becomes an alarm's deadline (defaults: docs/health.md)
 # backlash.width = "20um"
 # viscous.scale = 1.5
 # [axes.x.health]
 # profile = "fingerprint"       # drivectl health run's profile (library name, or a TOML file beside this one)
-# baseline_runs = 3             # an axis without axes.NAME.model: its baseline is the model of its first N runs
 """
 
 

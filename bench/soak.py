@@ -45,6 +45,8 @@ from drivectl.tools.conformance.soak import run_soak
 
 #: where the wall soak's moves go (m, around each axis's start; inside every axis's soft limits)
 SPAN_M = 0.008
+#: a rise of the host's steal time in one second this large is a gap no deadline of the machine rides out (s)
+STEAL_RISE_S = 0.05
 
 
 def _burn() -> None:
@@ -61,6 +63,29 @@ def _emulator(tmp: Path, config: Path):
     if not line.startswith("emulating"):
         raise RuntimeError(f"emulate did not start: {line}{proc.stderr.read()}")
     return proc, int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
+
+
+def _steal_sampler(stop: threading.Event, rises: list, total: list) -> None:
+    """Once a second, the host's steal time per vCPU (controllers/runtime/host.py): every rise of
+    STEAL_RISE_S or more in one second, with its monotonic time (a fault near one is the hypervisor's)."""
+    from drivectl.controllers.runtime.host import steal_s
+
+    was = steal_s()
+    while was is not None and not stop.wait(1.0):
+        now = steal_s()
+        total[0] += sum(now[c] - was.get(c, now[c]) for c in now)
+        rises.extend((time.monotonic(), c, now[c] - was[c]) for c in now if now[c] - was.get(c, now[c]) >= STEAL_RISE_S)
+        was = now
+
+
+def steal_line(r: dict) -> str:
+    """The host's steal time over the soak, and which faults came within 2 s of a rise."""
+    rises, at = r["_steal_rises"], r["_fault_at"]
+    near = sum(any(abs(t - f) <= 2.0 for t, _, _ in rises) for f in at)
+    return (f"host: steal time {r['_steal_total_s'] * 1e3:.0f} ms over the soak, {len(rises)} rises of "
+            f"{STEAL_RISE_S * 1e3:g} ms or more in one second (largest "
+            f"{max((d for _, _, d in rises), default=0.0) * 1e3:.0f} ms); faults within 2 s of one: "
+            f"{near} of {len(at)}")
 
 
 def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
@@ -87,7 +112,9 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
     burners = [multiprocessing.get_context("spawn").Process(target=_burn, daemon=True) for _ in range(hogs)]
     for burner in burners:
         burner.start()
-    polls, done, failed, fault_lines, refusals = [0], 0, 0, [], [0]
+    polls, done, failed, fault_lines, refusals, fault_at = [0], 0, 0, [], [0], []
+    rises, stolen, stop_steal = [], [0.0], threading.Event()
+    threading.Thread(target=_steal_sampler, args=(stop_steal, rises, stolen), daemon=True).start()
     try:
         with drivectl.connect(cfg, clock="wall", fault_dir=tmp, loop=loop) as m:
             names = list(m.axes)
@@ -114,6 +141,8 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
                         if ax.fault is not None:
                             at = "" if getattr(ax.fault, "at", None) is None else f" (monotonic {ax.fault.at:.3f} s)"
                             fault_lines.append(f"{name}: {ax.fault.kind}: {ax.fault.detail}{at}")
+                            if getattr(ax.fault, "at", None) is not None:
+                                fault_at.append(ax.fault.at)
                         ax.fault_reset(2.0)
                         try:
                             ax.enable(2.0)
@@ -148,6 +177,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             poller.join(1.0)
             stall = _stall(m, stall_s)
     finally:
+        stop_steal.set()
         for burner in burners:
             burner.terminate()
         if emu is not None:
@@ -158,8 +188,8 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             "missed_fraction": (st["missed_deadlines"] - st0["missed_deadlines"]) / slots,
             "worst_late_ms": st["worst_late_ms"], "latency_p99_99_ms": st["latency_ms"]["p99_99"],
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
-            "_status": st, "_polls": polls[0],
-            "_faults": fault_lines}
+            "_status": st, "_polls": polls[0], "_faults": fault_lines,
+            "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at}
 
 
 def _stall(m, seconds: float) -> dict:
@@ -242,6 +272,7 @@ def main() -> None:
                 print(f"  {line}", file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
             print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
+            print(steal_line(r), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}, the loop in "
@@ -259,6 +290,7 @@ def main() -> None:
             print(f"  {line}")
         print(stall_line(stall))
         print(loop_line(st))
+        print(steal_line(r))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {

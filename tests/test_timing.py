@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from helpers import SimWallClock
 
+from drivectl.controllers.runtime.host import StealWatch, steal_s
 from drivectl.controllers.runtime.timing import (
     DEADLINE_CAP_S,
     LatencyRecord,
@@ -186,6 +187,40 @@ def test_a_stall_past_the_deadline_is_caught_within_the_deadline_plus_two_cycles
     finally:
         loop.close()
         m.close()
+
+
+def test_a_stall_s_message_names_the_hypervisor_s_steal_time_where_it_rose(tmp_path):
+    """A 0.5 s gap while the host's steal time (/proc/stat) rose by 100 ms on one vCPU: the fault says so,
+    the CPU and the amount; the steal reader is injected (the mark is the stall's baseline, not re-read)."""
+    stolen = {"cpu0": 1.0, "cpu1": 2.0}
+
+    class Held(StealWatch):
+        def mark(self) -> None:  # the watchdog's once-a-second mark: held at the baseline here
+            pass
+
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    try:
+        loop._steal = Held(lambda: dict(stolen))
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 100, 30.0)
+        stolen["cpu1"] += 0.1
+        stall["s"] = 0.5
+        assert loop.run_until(lambda: loop.faults, 30.0)
+        detail = loop.faults[0].detail
+        assert "no cycle for 50" in detail and "steal time on cpu1 rose by 100 ms" in detail, detail
+    finally:
+        loop.close()
+        m.close()
+
+
+def test_steal_watch_reads_this_kernel_and_says_nothing_when_nothing_was_taken():
+    got = steal_s()
+    if got is not None:  # Linux: one entry per CPU, none negative
+        assert got and all(k.startswith("cpu") and v >= 0 for k, v in got.items())
+    flat = StealWatch(lambda: {"cpu0": 0.5})
+    assert flat.since() is None and flat.note() == ""
+    assert StealWatch(lambda: None).note() == ""
 
 
 def test_the_loop_never_scans_the_old_heap_while_an_axis_is_enabled():

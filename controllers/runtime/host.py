@@ -243,3 +243,47 @@ class HostMeasures:
         """Give back everything taken (counted per measure: the last loop restores the process's settings)."""
         while self._held:
             self._held.pop().release()
+
+
+# Steal time: on a virtual machine, the time the hypervisor ran something else while a vCPU of this guest was
+# ready to run (/proc/stat's eighth field per CPU, in USER_HZ ticks). A gap of the loop that the guest's own
+# scheduler cannot explain (cyclictest at real-time priority sees it too) shows up here: measured on the
+# 2-core VM of docs/timing.md, exactly 100 ms taken from one vCPU now and then.
+def steal_s() -> dict[str, float] | None:
+    """Each CPU's steal time since boot (s, ``{"cpu0": ...}``); None where the kernel does not say."""
+    try:
+        tick = 1.0 / os.sysconf("SC_CLK_TCK")
+        with open("/proc/stat") as f:
+            return {p[0]: int(p[8]) * tick for p in (line.split() for line in f)
+                    if p[0].startswith("cpu") and p[0] != "cpu" and len(p) > 8}
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class StealWatch:
+    """The host's steal time since a mark: :meth:`mark` now and then (off the cycle's path), :meth:`since`
+    when a gap is found. A ``/proc/stat`` read costs some tens of us: never per cycle."""
+
+    def __init__(self, read: Callable[[], dict[str, float] | None] = steal_s):
+        self._read = read
+        self._mark = read()
+
+    def mark(self) -> None:
+        self._mark = self._read()
+
+    def since(self) -> tuple[str, float] | None:
+        """The CPU whose steal time rose most since the mark, and by how much (s); None: unknown or none."""
+        now, was = self._read(), self._mark
+        if not now or not was:
+            return None
+        cpu, rise = max(((c, now[c] - was.get(c, now[c])) for c in now), key=lambda cr: cr[1])
+        return (cpu, rise) if rise > 0 else None
+
+    def note(self) -> str:
+        """A clause for a stall's message: what the hypervisor took meanwhile, or nothing."""
+        got = self.since()
+        if got is None:
+            return ""
+        cpu, rise = got
+        return (f"; the host's steal time on {cpu} rose by {rise * 1e3:.0f} ms since about a second before "
+                "(the hypervisor ran something else on this VM's CPU: docs/timing.md)")

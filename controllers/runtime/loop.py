@@ -60,9 +60,7 @@ from drivectl.controllers.runtime.cycle import (
     sample_axis,
 )
 from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, ProfileRun
-from drivectl.controllers.runtime.host import (
-    HostMeasures,
-)
+from drivectl.controllers.runtime.host import HostMeasures, StealWatch
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
 from drivectl.controllers.runtime.pacing import Pacer, pace_axes
 from drivectl.controllers.runtime.safe_stop import drive_error_code, quietly, stop_channels
@@ -196,6 +194,7 @@ class ServoLoop:
         self._closed = threading.Event()
         self._last_cycle_t: float | None = None
         self._stalled = False
+        self._steal = StealWatch()  # a stall's message says what the hypervisor took meanwhile
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
         self._host = HostMeasures()  # what this loop holds of the process while it runs (wall clock)
@@ -675,14 +674,19 @@ class ServoLoop:
         servo = min(over, key=self.bound_of)
         fault = Fault(FaultKind.LOOP_STALLED, servo.name, servo.servo_k,
                       f"axis {servo.name}: the servo loop stalled: no cycle for {gap * 1e3:.1f} ms "
-                      f"(bound {self.bound_of(servo) * 1e3:g} ms)")
+                      f"(bound {self.bound_of(servo) * 1e3:g} ms){self._steal.note()}")
         with self.io_lock:
             self._fault(fault, StopReason.FAULT)
 
     def _watchdog_main(self) -> None:
         """When the loop thread does not come back within the stall bound, quick-stop the enabled axes
         from here (best effort: the loop thread may hold the bus); the loop verifies when it resumes."""
+        marks = 0
         while not self._closed.wait(self._watch_s / 2):
+            marks += 1
+            if marks * self._watch_s / 2 >= 1.0:  # the steal time's mark, about once a second
+                marks = 0
+                self._steal.mark()
             last = self._last_cycle_t
             if last is None or self._closing or self._stalled:
                 continue

@@ -162,6 +162,7 @@ def plot_histogram(latency: Any, deadlines: dict[str, Any], dt: float, path: str
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
+    from drivectl.controllers.runtime.host import steal_s
     from drivectl.controllers.runtime.timing import WAYS_OUT
     from drivectl.machine.bus_budget import machine_load
     from drivectl.machine.config import load_config
@@ -174,7 +175,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     for n in names:
         cfg.axis(n)
     load = machine_load(cfg, names)
+    steal0 = steal_s()
     res = probe(cfg, names, args.seconds, args.cpu, args.try_enable)
+    steal1 = steal_s()
     status, deadlines = res["status"], res["deadlines"]
     lat = status["latency_ms"]
     verdict, per = assess(deadlines, cfg.cycle_s, lat)
@@ -193,6 +196,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     print(f"probe     {status['cycles']} cycles of {cfg.cycle_s * 1e3:g} ms in {args.seconds:g} s, no axis enabled; "
           f"{status['missed_deadlines']} missed, {status['skipped_cycles']} skipped")
     print("lateness  " + "  ".join(f"{q} {v:.3f} ms" for q, v in lat.items()))
+    if steal0 and steal1:  # the hypervisor's share of the lateness (host.py): no setting in this guest helps it
+        print("steal     " + ", ".join(f"{c} {(steal1[c] - steal0.get(c, steal1[c])) * 1e3:.0f} ms" for c in steal1)
+              + " taken by the hypervisor during the probe (on a virtual machine: its host ran something else)")
     for what, text in status["granted"].items():
         print(f"granted   {what}: {text}")
     for n, d in deadlines.items():

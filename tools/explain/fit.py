@@ -27,6 +27,10 @@ from drivectl.tools.explain.sim import BatchSim, make_windows
 #: backlash contact needs 5 for the coarse search to point at the right width
 COARSE_SUBSTEPS = 2
 COARSE_SUBSTEPS_TWO_BODY = 5
+#: a curvature of the windows' mean error below this fraction of the grid's largest mean error is
+#: rounding, not information: a parameter the run does not see gets a curvature of +-1e-17 whose sign
+#: depends on the CPU's BLAS kernels (seen: inf on one CPU, a finite guess on another)
+FLAT_RTOL = 1e-9
 
 #: the vocabulary parameters each effect reports (required ones; optional ones when fitted)
 PARAM_NAMES: dict[str, tuple[str, ...]] = {
@@ -119,8 +123,9 @@ def uncertainty(points: np.ndarray, mse: np.ndarray, best: int, names: tuple[str
             H[a, b] = H[b, a] = v
     S = np.atleast_2d(np.cov(grads, ddof=1))
     var = np.full(d, math.inf)
+    flat = FLAT_RTOL * float(np.max(np.abs(np.mean(mse, axis=0))))
     try:
-        ok = bool(np.all(np.linalg.eigvalsh(H) > 0))
+        ok = bool(np.all(np.linalg.eigvalsh(H) > flat))
     except np.linalg.LinAlgError:
         ok = False
     if ok:
@@ -128,7 +133,7 @@ def uncertainty(points: np.ndarray, mse: np.ndarray, best: int, names: tuple[str
         var = np.diag(Hi @ S @ Hi) / W
     else:  # not a minimum in every direction jointly: each parameter alone where it has a curvature
         diag = np.diag(H)
-        pos = diag > 0
+        pos = diag > flat
         var[pos] = np.diag(S)[pos] / (diag[pos] ** 2 * W)
     out = {}
     for a, n in enumerate(names):

@@ -282,7 +282,7 @@ def test_the_jog_dead_man_counts_slots_a_late_wake_up_skipped_not_cycles_run(tmp
 
 
 def test_after_a_late_wake_up_a_profile_run_finds_its_reference_where_the_time_is(tmp_path):
-    """As a move's: a profile run's reference is a function of time, so the 4 slots a 4.6 ms late wake-up
+    """As a move's: a profile run's reference is a function of time, so the 4 slots a 4.3 ms late wake-up
     skipped are skipped in the run too (was: its cursor moved one row while the axis moved five), and the
     run's record has no row for the skipped slots (no sample was taken there: its time jumps over them)."""
     from drivectl.controllers.runtime.cycle import Channel
@@ -312,7 +312,7 @@ def test_after_a_late_wake_up_a_profile_run_finds_its_reference_where_the_time_i
         before = ring.count
         k0 = run.k
         hold["at"] = loop.slots + 100
-        stall["s"] = 0.0046
+        stall["s"] = 0.0043
         assert hold["held"].wait(30.0) and "servo_k" in seen
         assert loop.status()["skipped_cycles"] == 4 and not loop.faults
         rows, _ = ring.window(ring.count - before + 1)

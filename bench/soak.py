@@ -20,7 +20,12 @@ resumes (a real stall is still caught). ``--json`` prints exactly {"minutes", "f
 "hogs": how many CPU-bound processes ran beside it, `--hog N`, default 1).
 Target: 0 faults over 30 minutes, both ways.
 
-    python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002] [--minutes 30] [--loop process|thread] [--json]
+    python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002|doctor] [--minutes 30] [--loop process|thread]
+        [--json]
+
+``--cycle-s doctor``: first ``drivectl doctor --json`` probes 10 s at 1 ms on the same set-up (across: against
+an emulator of its own) beside the same hogs, and the soak runs at the cycle it recommends (docs/timing.md,
+"The cycle doctor recommends"); the stderr line "cycle ..." says which it was.
 
 ``--loop``: where the master's loop runs (``connect(loop=...)``, default process: issue 39 point 1); the
 0.5 s SIGSTOP then stops the loop's process. The line on stderr names it.
@@ -89,29 +94,34 @@ def steal_line(r: dict) -> str:
 
 
 def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
-              cycle_s: float = 0.001, hogs: int = 1, loop: str = "process") -> dict:
-    """The wall-clock soak (see the module text); returns its figures and the stall's outcome."""
+              cycle_s: float | None = 0.001, hogs: int = 1, loop: str = "process") -> dict:
+    """The wall-clock soak (see the module text); returns its figures and the stall's outcome.
+    ``cycle_s`` None: the cycle ``drivectl doctor`` recommends on the same set-up beside the same hogs."""
     import dataclasses
     import multiprocessing
 
     import drivectl
     from drivectl.controllers.runtime.handles import MotionFault
     from drivectl.driver.axis import AxisError
-    from drivectl.machine.config import DEFAULT_CONFIG_TOML, load_config
+    from drivectl.machine.config import load_config
 
     rng = random.Random(seed)
     emu = None
     tmp = Path(tempfile.mkdtemp(prefix="soak-wall-"))
     config = tmp / "machine.toml"  # the embedded machine at this cycle, for both ends
-    config.write_text(DEFAULT_CONFIG_TOML.replace("cycle_s = 0.001", f"cycle_s = {cycle_s!r}", 1))
+    burners = [multiprocessing.get_context("spawn").Process(target=_burn, daemon=True) for _ in range(hogs)]
+    for burner in burners:  # first: doctor's probe runs beside them too
+        burner.start()
+    doctor = None
+    if cycle_s is None:  # the cycle doctor recommends for this set-up, beside the same hogs
+        doctor = _doctor_cycle(tmp, across)
+        cycle_s = doctor["recommended_cycle_s"]
+    config.write_text(_config_text(cycle_s))
     cfg = load_config(config)
     if across:
         emu, port = _emulator(tmp, config)
         cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
                                                                host="127.0.0.1", port=port))
-    burners = [multiprocessing.get_context("spawn").Process(target=_burn, daemon=True) for _ in range(hogs)]
-    for burner in burners:
-        burner.start()
     polls, done, failed, fault_lines, refusals, fault_at = [0], 0, 0, [], [0], []
     rises, stolen, stop_steal = [], [0.0], threading.Event()
     threading.Thread(target=_steal_sampler, args=(stop_steal, rises, stolen), daemon=True).start()
@@ -189,7 +199,42 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             "worst_late_ms": st["worst_late_ms"], "latency_p99_99_ms": st["latency_ms"]["p99_99"],
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
             "_status": st, "_polls": polls[0], "_faults": fault_lines,
-            "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at}
+            "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at, "_cycle_s": cycle_s,
+            "_doctor": doctor}
+
+
+def _config_text(cycle_s: float, port: int | None = None) -> str:
+    """The embedded machine at ``cycle_s``; with ``port``, its master on socketcand at that loopback port."""
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML
+
+    text = DEFAULT_CONFIG_TOML.replace("cycle_s = 0.001", f"cycle_s = {cycle_s!r}", 1)
+    if port is not None:
+        text = re.sub(r'(?m)^interface = "virtual".*$', 'interface = "socketcand"', text, count=1)
+        text = re.sub(r'(?m)^channel = "drivectl".*$', f'channel = "can0"\nhost = "127.0.0.1"\nport = {port}',
+                      text, count=1)
+    return text
+
+
+def _doctor_cycle(tmp: Path, across: bool, seconds: float = 10.0) -> dict:
+    """``drivectl doctor --json`` at 1 ms on this soak's set-up (across: against an emulator of its own, which
+    then ends): its JSON, whose "recommended_cycle_s" the soak then runs at."""
+    probe_cfg = tmp / "doctor.toml"
+    probe_cfg.write_text(_config_text(0.001))
+    emu = None
+    try:
+        if across:
+            emu, port = _emulator(tmp, probe_cfg)
+            probe_cfg.write_text(_config_text(0.001, port))
+        out = subprocess.run([sys.executable, "-m", "drivectl", "--config", str(probe_cfg), "doctor", "--seconds",
+                              str(seconds), "--json"], capture_output=True, text=True, timeout=120)
+    finally:
+        if emu is not None:
+            emu.send_signal(signal.SIGTERM)
+            emu.communicate(timeout=30)
+    try:
+        return json.loads(out.stdout)
+    except json.JSONDecodeError as exc:
+        raise RuntimeError(f"doctor gave no JSON (exit {out.returncode}): {out.stderr.strip()[-400:]}") from exc
 
 
 def _stall(m, seconds: float) -> dict:
@@ -238,6 +283,16 @@ def stall_line(stall: dict) -> str:
             f"{stall['deadline_ms']:g} ms + 2 cycles); end states as the drives reported them {stall['safe']}")
 
 
+def cycle_line(r: dict) -> str:
+    """The cycle the soak ran at, and whose choice it was."""
+    d = r["_doctor"]
+    if d is None:
+        return f"cycle {r['_cycle_s'] * 1e3:g} ms (--cycle-s)"
+    lat = d["latency_ms"]
+    return (f"cycle {r['_cycle_s'] * 1e3:g} ms, recommended by drivectl doctor (10 s probe at 1 ms beside the hogs: "
+            f"verdict {d['verdict']}, p99.99 {lat['p99_99']:.2f} ms, max {lat['max']:.2f} ms)")
+
+
 def loop_line(st: dict) -> str:
     """The loop's own record at the end (before the stall): what a fault may be laid at."""
     return ("loop: lateness " + ", ".join(f"{q} {v:.2f}" for q, v in st["latency_ms"].items()) + " ms; skipped "
@@ -253,8 +308,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--wall", action="store_true", help="on the wall clock, x, y and z, beside a CPU-bound process")
     ap.add_argument("--across", action="store_true", help="--wall against drivectl emulate --socketcand")
-    ap.add_argument("--cycle-s", type=float, default=0.001,
-                    help="--wall: the servo cycle (default 0.001; longer: the way out where a host cannot keep it)")
+    ap.add_argument("--cycle-s", default="0.001",
+                    help="--wall: the servo cycle in s (default 0.001; longer: the way out where a host cannot keep "
+                    "it), or 'doctor': the cycle drivectl doctor recommends on the same set-up beside the hogs")
     ap.add_argument("--hog", type=int, default=1, help="--wall: CPU-bound processes beside the soak (default 1)")
     ap.add_argument("--loop", choices=("process", "thread"), default="process",
                     help="--wall: the loop in its own process (default) or a thread of this one")
@@ -262,9 +318,15 @@ def main() -> None:
     if args.wall:
         if args.hog < 0:
             ap.error(f"--hog: must be 0 or more, got {args.hog}")
-        if not (0.0005 <= args.cycle_s <= 0.01):
-            ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
-        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=args.cycle_s,
+        cycle_s = None
+        if args.cycle_s != "doctor":
+            try:
+                cycle_s = float(args.cycle_s)
+            except ValueError:
+                ap.error(f"--cycle-s: expected seconds or 'doctor', got {args.cycle_s!r}")
+            if not (0.0005 <= cycle_s <= 0.01):
+                ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
+        r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=cycle_s,
                       hogs=args.hog, loop=args.loop)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
@@ -273,11 +335,12 @@ def main() -> None:
             print(stall_line(r["_stall"]), file=sys.stderr)
             print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
             print(steal_line(r), file=sys.stderr)
+            print(cycle_line(r), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
         print(f"wall soak, {'across processes (socketcand)' if args.across else 'in-process'}, the loop in "
               f"{'its own process' if args.loop == 'process' else 'a thread of the program'}: "
-              f"{r['minutes']:g} min at cycle {args.cycle_s * 1e3:g} ms, x y z enabled "
+              f"{r['minutes']:g} min at cycle {r['_cycle_s'] * 1e3:g} ms, x y z enabled "
               f"beside {args.hog} CPU-bound process(es); "
               "load average "
               f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
@@ -291,6 +354,7 @@ def main() -> None:
         print(stall_line(stall))
         print(loop_line(st))
         print(steal_line(r))
+        print(cycle_line(r))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)
     out = {

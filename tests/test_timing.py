@@ -139,7 +139,7 @@ def test_a_late_cycle_within_the_deadline_is_a_missed_cycle_not_a_fault(tmp_path
 
 
 def test_after_a_late_wake_up_a_moving_axis_finds_its_reference_where_the_time_is(tmp_path):
-    """x at 50 mm/s, the loop woken 4.6 ms late (4 slots skipped): the drive held the last effort meanwhile
+    """x at 50 mm/s, the loop woken 4.3 ms late (4 slots skipped): the drive held the last effort meanwhile
     and the axis moved on. The move's reference skips the slots with it, and the sample after the gap is
     stamped with its slot (its derived velocity spans the real interval): the law sees the axis where it
     should be, no jump, no hard brake (a soak's x faulted on a 1.3 mm following error before this)."""
@@ -155,7 +155,7 @@ def test_after_a_late_wake_up_a_moving_axis_finds_its_reference_where_the_time_i
         ring = rt.ring
         before = ring.count
         hold["at"] = loop.slots + 100  # the loop stops there until the ring is read (its thread runs on)
-        stall["s"] = 0.0046
+        stall["s"] = 0.0043
         assert hold["held"].wait(30.0) and "servo_k" in seen
         assert loop.status()["skipped_cycles"] == 4 and not loop.faults
         rows, _ = ring.window(ring.count - before + 1)  # from the last sample before the stall on
@@ -371,7 +371,7 @@ def test_a_capture_across_late_wake_ups_and_the_ring_s_wrap_reads_back_with_the_
     m, loop, seen = _sim_loop(tmp_path, stall, hold, ring_s=0.3, late=late)
     try:
         w = loop.slots + 1000  # far enough ahead that the loop's thread has not passed it yet
-        late.update({w: 0.012, w + 60: 0.0046, w + 120: 0.0071})  # 12, 4 and 7 slots skipped
+        late.update({w: 0.012, w + 60: 0.0043, w + 120: 0.0071})  # 12, 4 and 7 slots skipped
         hold["at"] = w + 200
         assert hold["held"].wait(60.0)  # the loop's thread waits in its sleep: the capture is armed there
         rt = loop.axes["x"]
@@ -666,3 +666,16 @@ def test_across_processes_an_answer_late_twice_running_is_found_by_its_position(
     finally:
         run.close()
     assert np.max(np.abs(err)) < _AcrossProcesses.TRACKING_M
+
+
+def test_the_recommended_cycle_leaves_half_a_cpu_and_lengthens_a_cycle_whose_slots_are_missed():
+    from drivectl.controllers.runtime.timing import recommend_cycle
+
+    assert recommend_cycle(0.001, 0.30, 0.001)[0] == 0.001  # 0.3 ms of CPU per 1 ms cycle, slots kept
+    c, why = recommend_cycle(0.001, 0.80, 0.001)  # 0.8 ms per cycle: 2 ms is the first under half a CPU
+    assert c == 0.002 and "0.80 ms of CPU per cycle" in why
+    assert recommend_cycle(0.001, 0.30, 0.03)[0] == 0.002  # light, but 3 % of the slots missed: longer
+    assert recommend_cycle(0.001, 0.30, 0.008)[0] == 0.001  # 0.8 % in a probe: a burst of the host, not the cycle
+    assert recommend_cycle(0.003, 0.10, 0.0)[0] == 0.003  # a configured cycle off the list stands when kept
+    assert recommend_cycle(0.001, 2.5, 0.0)[0] == 0.005  # 2.5 ms per cycle (a slow host): 5 ms
+    assert recommend_cycle(0.001, None, 0.0)[0] == 0.001  # no CPU clock (not measured): the slots decide

@@ -195,6 +195,7 @@ class ServoLoop:
         self._last_cycle_t: float | None = None
         self._stalled = False
         self._steal = StealWatch()  # a stall's message says what the hypervisor took meanwhile
+        self._cpu_mark: tuple[int, float, float] | None = None  # the loop thread's CPU clock, its start, the time
         self._writer: threading.Thread | None = None
         self._pending_writes: collections.deque[tuple[Path, Capture]] = collections.deque()
         self._host = HostMeasures()  # what this loop holds of the process while it runs (wall clock)
@@ -580,6 +581,8 @@ class ServoLoop:
             self._setup_thread()
             now = self._now
             pacer = Pacer(self.dt, now=now, sleep=self._sleep)
+            clk = time.pthread_getcpuclockid(threading.get_ident())
+            self._cpu_mark = (clk, time.clock_gettime(clk), time.perf_counter())
             # in-process, the emulated drives run on this clock too, as across processes: a loop later than
             # the drive's RPDO deadline is caught by the drive (controllers/runtime/pacing.pace_axes)
             pace_axes(self._channels, pacer.now)
@@ -645,6 +648,19 @@ class ServoLoop:
         self.gc_runs += 1
         if took > self.gc_worst:
             self.gc_worst = took
+
+    def cpu_share(self) -> float | None:
+        """The share of one CPU the loop's thread has used since it started (its CPU clock over the monotonic
+        one; its spin included); None before, after, or in lockstep."""
+        mark = self._cpu_mark
+        if mark is None or not self.running:
+            return None
+        clk, c0, t0 = mark
+        try:
+            used = time.clock_gettime(clk) - c0
+        except OSError:  # the thread ended meanwhile
+            return None
+        return used / max(time.perf_counter() - t0, 1e-9)
 
     def bound_of(self, rt: AxisRuntime | str) -> float:
         """The longest gap between two cycles that an axis rides out (s; inf: not watched)."""
@@ -714,6 +730,7 @@ class ServoLoop:
             "deadline_ms": {name: d * 1e3 for name, d in self.deadlines.items()},
             "gc_collections": self.gc_runs,
             "gc_worst_ms": self.gc_worst * 1e3,
+            "cpu_share": self.cpu_share(),
             "granted": dict(self.granted),
             "faults": len(self.faults),
             "command_errors": len(self.command_errors),

@@ -163,7 +163,7 @@ def plot_histogram(latency: Any, deadlines: dict[str, Any], dt: float, path: str
 
 def cmd_doctor(args: argparse.Namespace) -> int:
     from drivectl.controllers.runtime.host import steal_s
-    from drivectl.controllers.runtime.timing import WAYS_OUT
+    from drivectl.controllers.runtime.timing import WAYS_OUT, recommend_cycle
     from drivectl.machine.bus_budget import machine_load
     from drivectl.machine.config import load_config
 
@@ -181,9 +181,13 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     status, deadlines = res["status"], res["deadlines"]
     lat = status["latency_ms"]
     verdict, per = assess(deadlines, cfg.cycle_s, lat)
+    cycle, cycle_why = recommend_cycle(cfg.cycle_s, status.get("cpu_share"), status["missed_fraction"])
+    if cycle > cfg.cycle_s and verdict == "ok":
+        verdict = "warn"  # the deadlines hold, but the host does not keep this cycle's slots (timing.py)
     if args.json:
         print(json.dumps({"latency_ms": lat, "deadline_ms": {n: d.ms for n, d in deadlines.items()},
-                          "cycle_s": cfg.cycle_s, "granted": status["granted"], "verdict": verdict}))
+                          "cycle_s": cfg.cycle_s, "recommended_cycle_s": cycle, "granted": status["granted"],
+                          "verdict": verdict}))
         return VERDICT_EXIT[verdict]
     k = kernel()
     print(f"host      {platform.node()}: {os.cpu_count()} CPUs, kernel {k['release']} "
@@ -196,6 +200,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     print(f"probe     {status['cycles']} cycles of {cfg.cycle_s * 1e3:g} ms in {args.seconds:g} s, no axis enabled; "
           f"{status['missed_deadlines']} missed, {status['skipped_cycles']} skipped")
     print("lateness  " + "  ".join(f"{q} {v:.3f} ms" for q, v in lat.items()))
+    print(f"cycle     {cycle * 1e3:g} ms recommended" + (" (as configured)" if cycle == cfg.cycle_s else
+          f" (cycle_s = {cycle!r} in the configuration; {cfg.cycle_s * 1e3:g} ms is configured)") + f": {cycle_why}")
     if steal0 and steal1:  # the hypervisor's share of the lateness (host.py): no setting in this guest helps it
         print("steal     " + ", ".join(f"{c} {(steal1[c] - steal0.get(c, steal1[c])) * 1e3:.0f} ms" for c in steal1)
               + " taken by the hypervisor during the probe (on a virtual machine: its host ran something else)")

@@ -668,14 +668,21 @@ def test_across_processes_an_answer_late_twice_running_is_found_by_its_position(
     assert np.max(np.abs(err)) < _AcrossProcesses.TRACKING_M
 
 
-def test_the_recommended_cycle_leaves_half_a_cpu_and_lengthens_a_cycle_whose_slots_are_missed():
-    from drivectl.controllers.runtime.timing import recommend_cycle
+def test_the_recommended_cycle_leaves_half_a_cpu_and_lengthens_a_cycle_the_host_is_late_for_again_and_again():
+    from drivectl.controllers.runtime.timing import LatencyRecord, recommend_cycle
 
-    assert recommend_cycle(0.001, 0.30, 0.001)[0] == 0.001  # 0.3 ms of CPU per 1 ms cycle, slots kept
+    assert recommend_cycle(0.001, 0.30, 0.001)[0] == 0.001  # 0.3 ms of CPU per 1 ms cycle, cycles on time
     c, why = recommend_cycle(0.001, 0.80, 0.001)  # 0.8 ms per cycle: 2 ms is the first under half a CPU
     assert c == 0.002 and "0.80 ms of CPU per cycle" in why
-    assert recommend_cycle(0.001, 0.30, 0.03)[0] == 0.002  # light, but 3 % of the slots missed: longer
-    assert recommend_cycle(0.001, 0.30, 0.008)[0] == 0.001  # 0.8 % in a probe: a burst of the host, not the cycle
+    assert recommend_cycle(0.001, 0.30, 0.02)[0] == 0.002  # light, but 2 % of the cycles late: longer
     assert recommend_cycle(0.003, 0.10, 0.0)[0] == 0.003  # a configured cycle off the list stands when kept
     assert recommend_cycle(0.001, 2.5, 0.0)[0] == 0.005  # 2.5 ms per cycle (a slow host): 5 ms
-    assert recommend_cycle(0.001, None, 0.0)[0] == 0.001  # no CPU clock (not measured): the slots decide
+    assert recommend_cycle(0.001, None, 0.0)[0] == 0.001  # no CPU clock (not measured): the lateness decides
+    # the late share counts cycles: one 50 ms burst (50 slots skipped) is one late cycle of 10 000, a host late
+    # by 0.6 ms in 2 % of its cycles is 200
+    burst, steady = LatencyRecord(), LatencyRecord()
+    for k in range(10_000):
+        burst.add(0.05 if k == 5000 else 20e-6)
+        steady.add(0.6e-3 if k % 50 == 0 else 20e-6)
+    assert burst.share_over(0.5e-3) == 1e-4 and recommend_cycle(0.001, 0.3, burst.share_over(0.5e-3))[0] == 0.001
+    assert steady.share_over(0.5e-3) == 0.02 and recommend_cycle(0.001, 0.3, steady.share_over(0.5e-3))[0] == 0.002

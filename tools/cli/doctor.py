@@ -181,7 +181,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     status, deadlines = res["status"], res["deadlines"]
     lat = status["latency_ms"]
     verdict, per = assess(deadlines, cfg.cycle_s, lat)
-    cycle, cycle_why = recommend_cycle(cfg.cycle_s, status.get("cpu_share"), status["missed_fraction"])
+    cycle, cycle_why = recommend_cycle(cfg.cycle_s, status.get("cpu_share"),
+                                       res["latency"].share_over(0.5 * cfg.cycle_s))
     if cycle > cfg.cycle_s and verdict == "ok":
         verdict = "warn"  # the deadlines hold, but the host does not keep this cycle's slots (timing.py)
     if args.json:

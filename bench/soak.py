@@ -23,9 +23,9 @@ Target: 0 faults over 30 minutes, both ways.
     python bench/soak.py --wall [--across] [--hog N] [--cycle-s 0.002|doctor] [--minutes 30] [--loop process|thread]
         [--json]
 
-``--cycle-s doctor``: first ``drivectl doctor --json`` probes 10 s at 1 ms on the same set-up (across: against
-an emulator of its own) beside the same hogs, and the soak runs at the cycle it recommends (docs/timing.md,
-"The cycle doctor recommends"); the stderr line "cycle ..." says which it was.
+``--cycle-s doctor``: first ``drivectl doctor --json`` probes 10 s (across: 60 s) at 1 ms on the same set-up
+(across: against an emulator of its own) beside the same hogs, and the soak runs at the cycle it recommends
+(docs/timing.md, "The cycle doctor recommends"); the stderr line "cycle ..." says which it was.
 
 ``--loop``: where the master's loop runs (``connect(loop=...)``, default process: issue 39 point 1); the
 0.5 s SIGSTOP then stops the loop's process. The line on stderr names it.
@@ -97,7 +97,6 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
               cycle_s: float | None = 0.001, hogs: int = 1, loop: str = "process") -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome.
     ``cycle_s`` None: the cycle ``drivectl doctor`` recommends on the same set-up beside the same hogs."""
-    import dataclasses
     import multiprocessing
 
     import drivectl
@@ -114,14 +113,14 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
         burner.start()
     doctor = None
     if cycle_s is None:  # the cycle doctor recommends for this set-up, beside the same hogs
-        doctor = _doctor_cycle(tmp, across)
+        doctor = _doctor_cycle(tmp, across, PROBE_S[across])
         cycle_s = doctor["recommended_cycle_s"]
     config.write_text(_config_text(cycle_s))
-    cfg = load_config(config)
-    if across:
+    if across:  # the emulator runs the embedded machine; the master reaches it over socketcand
         emu, port = _emulator(tmp, config)
-        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, interface="socketcand", channel="can0",
-                                                               host="127.0.0.1", port=port))
+        config = tmp / "master.toml"
+        config.write_text(_config_text(cycle_s, port))
+    cfg = load_config(config)
     polls, done, failed, fault_lines, refusals, fault_at = [0], 0, 0, [], [0], []
     rises, stolen, stop_steal = [], [0.0], threading.Event()
     threading.Thread(target=_steal_sampler, args=(stop_steal, rises, stolen), daemon=True).start()
@@ -215,7 +214,12 @@ def _config_text(cycle_s: float, port: int | None = None) -> str:
     return text
 
 
-def _doctor_cycle(tmp: Path, across: bool, seconds: float = 10.0) -> dict:
+# doctor's probe enables no axis; across processes it wavers between cycles in 10 s (docs/timing.md, "The
+# cycle doctor recommends": run it 60 s or more there)
+PROBE_S = {False: 10.0, True: 60.0}
+
+
+def _doctor_cycle(tmp: Path, across: bool, seconds: float) -> dict:
     """``drivectl doctor --json`` at 1 ms on this soak's set-up (across: against an emulator of its own, which
     then ends): its JSON, whose "recommended_cycle_s" the soak then runs at."""
     probe_cfg = tmp / "doctor.toml"
@@ -226,13 +230,13 @@ def _doctor_cycle(tmp: Path, across: bool, seconds: float = 10.0) -> dict:
             emu, port = _emulator(tmp, probe_cfg)
             probe_cfg.write_text(_config_text(0.001, port))
         out = subprocess.run([sys.executable, "-m", "drivectl", "--config", str(probe_cfg), "doctor", "--seconds",
-                              str(seconds), "--json"], capture_output=True, text=True, timeout=120)
+                              str(seconds), "--json"], capture_output=True, text=True, timeout=seconds + 120)
     finally:
         if emu is not None:
             emu.send_signal(signal.SIGTERM)
             emu.communicate(timeout=30)
     try:
-        return json.loads(out.stdout)
+        return {**json.loads(out.stdout), "_seconds": seconds}
     except json.JSONDecodeError as exc:
         raise RuntimeError(f"doctor gave no JSON (exit {out.returncode}): {out.stderr.strip()[-400:]}") from exc
 
@@ -289,8 +293,8 @@ def cycle_line(r: dict) -> str:
     if d is None:
         return f"cycle {r['_cycle_s'] * 1e3:g} ms (--cycle-s)"
     lat = d["latency_ms"]
-    return (f"cycle {r['_cycle_s'] * 1e3:g} ms, recommended by drivectl doctor (10 s probe at 1 ms beside the hogs: "
-            f"verdict {d['verdict']}, p99.99 {lat['p99_99']:.2f} ms, max {lat['max']:.2f} ms)")
+    return (f"cycle {r['_cycle_s'] * 1e3:g} ms, recommended by drivectl doctor ({d['_seconds']:g} s probe at 1 ms "
+            f"beside the hogs: verdict {d['verdict']}, p99.99 {lat['p99_99']:.2f} ms, max {lat['max']:.2f} ms)")
 
 
 def loop_line(st: dict) -> str:

@@ -59,15 +59,23 @@ def _burn() -> None:
         pass
 
 
-def _emulator(tmp: Path, config: Path):
-    """``drivectl emulate --socketcand`` in another process: (process, port)."""
-    proc = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(config), "emulate", "--socketcand"],
-                            stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+def _emulator(tmp: Path, config: Path, log: Path):
+    """``drivectl emulate --socketcand`` in another process, its stderr (what the drives say of a master they
+    lost) kept in ``log``: (process, port)."""
+    with log.open("w") as err:  # the child holds its own descriptor
+        proc = subprocess.Popen([sys.executable, "-m", "drivectl", "--config", str(config), "emulate", "--socketcand"],
+                                stdout=subprocess.PIPE, stderr=err, text=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     if not line.startswith("emulating"):
-        raise RuntimeError(f"emulate did not start: {line}{proc.stderr.read()}")
+        proc.wait(timeout=30)
+        raise RuntimeError(f"emulate did not start: {line}{log.read_text()}")
     return proc, int(re.search(r"127\.0\.0\.1:(\d+)", line).group(1))
+
+
+def drive_lines(log: Path) -> list[str]:
+    """The emulated drives' own words on the masters they lost (``drivectl emulate``'s stderr)."""
+    return [ln.strip() for ln in log.read_text().splitlines() if "master lost" in ln] if log.exists() else []
 
 
 def _steal_sampler(stop: threading.Event, rises: list, total: list) -> None:
@@ -117,7 +125,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
         cycle_s = doctor["recommended_cycle_s"]
     config.write_text(_config_text(cycle_s))
     if across:  # the emulator runs the embedded machine; the master reaches it over socketcand
-        emu, port = _emulator(tmp, config)
+        emu, port = _emulator(tmp, config, tmp / "emulator.log")
         config = tmp / "master.toml"
         config.write_text(_config_text(cycle_s, port))
     cfg = load_config(config)
@@ -199,7 +207,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
             "_status": st, "_polls": polls[0], "_faults": fault_lines,
             "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at, "_cycle_s": cycle_s,
-            "_doctor": doctor}
+            "_doctor": doctor, "_drive_lines": drive_lines(tmp / "emulator.log")}
 
 
 def _config_text(cycle_s: float, port: int | None = None) -> str:
@@ -227,7 +235,7 @@ def _doctor_cycle(tmp: Path, across: bool, seconds: float) -> dict:
     emu = None
     try:
         if across:
-            emu, port = _emulator(tmp, probe_cfg)
+            emu, port = _emulator(tmp, probe_cfg, tmp / "emulator-doctor.log")
             probe_cfg.write_text(_config_text(0.001, port))
         out = subprocess.run([sys.executable, "-m", "drivectl", "--config", str(probe_cfg), "doctor", "--seconds",
                               str(seconds), "--json"], capture_output=True, text=True, timeout=seconds + 120)
@@ -336,6 +344,8 @@ def main() -> None:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
             for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
                 print(f"  {line}", file=sys.stderr)
+            for line in r["_drive_lines"][:20]:
+                print(f"  emulated drive: {line}", file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
             print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
             print(steal_line(r), file=sys.stderr)
@@ -355,6 +365,8 @@ def main() -> None:
         print("deadlines " + ", ".join(f"{n} {v:g} ms" for n, v in st["deadline_ms"].items()))
         for line in list(dict.fromkeys(r["_faults"]))[:10]:
             print(f"  {line}")
+        for line in r["_drive_lines"][:10]:
+            print(f"  emulated drive: {line}")
         print(stall_line(stall))
         print(loop_line(st))
         print(steal_line(r))

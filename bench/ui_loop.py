@@ -13,7 +13,11 @@ Columns: cycles, missed deadlines (fraction), worst lateness (ms, since the sess
 and the lateness percentiles of the counted part (ms, from the loop's histogram, ``status()["latency_ms"]``).
 The figures are wall-clock measurements: quote the machine's load with them (printed).
 
-    python bench/ui_loop.py [--seconds 30] [--loop process|thread] [--json]
+    python bench/ui_loop.py [--seconds 30] [--rounds 1] [--loop process|thread] [--json]
+
+``--rounds N``: the three rows N times, interleaved (no client, websocket, browser, no client, ...), so a
+drift of the host's load falls on every row alike; each row's figures pool its N runs (its cycles and
+missed slots summed), and the table adds the spread of the row's runs.
 
 ``--loop``: where the loop runs (default process: the console, its server and the browser's requests in
 this process, the loop in its own; ``thread``: the loop a thread of this process).
@@ -85,7 +89,8 @@ def _row(seconds: float, client: str, tmp: Path, loop: str = "process") -> dict 
             console.conductor.stop()
     cycles = st["cycles"] - st0["cycles"]
     missed = st["missed_deadlines"] - st0["missed_deadlines"]
-    row = {"cycles": cycles, "missed_fraction": missed / max(cycles + missed, 1), "worst_late_ms": st["worst_late_ms"],
+    row = {"cycles": cycles, "missed": missed, "missed_fraction": missed / max(cycles + missed, 1),
+           "worst_late_ms": st["worst_late_ms"],
            "drive_stops": st["faults"] - st0["faults"]}
     lat.n -= lat0.n  # the counted part's lateness only (its maximum stays the session's: a histogram has no other)
     lat.counts = [a - b for a, b in zip(lat.counts, lat0.counts, strict=True)]
@@ -118,14 +123,25 @@ def _ws_client(url: str, stop: threading.Event) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=30.0, help="counted seconds per row (default 30)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="the rows this many times, interleaved; each row pools its runs (default 1)")
     ap.add_argument("--loop", choices=("process", "thread"), default="process",
                     help="the loop in its own process (default) or a thread of this one")
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     args = ap.parse_args()
-    rows = {}
+    if args.rounds < 1:
+        ap.error(f"--rounds: at least 1, got {args.rounds}")
+    runs: dict[str, list[dict | None]] = {"no_client": [], "ws_client": [], "browser": []}
+    clients = {"no_client": "none", "ws_client": "ws", "browser": "browser"}
     with tempfile.TemporaryDirectory() as d:
-        for name, client in (("no_client", "none"), ("ws_client", "ws"), ("browser", "browser")):
-            rows[name] = _row(args.seconds, client, Path(d), args.loop)
+        for n in range(args.rounds):
+            for name, client in clients.items():
+                if n and runs[name][0] is None:
+                    continue  # could not run (said why the first time)
+                if args.rounds > 1:
+                    print(f"round {n + 1}/{args.rounds}: {name}", file=sys.stderr)
+                runs[name].append(_row(args.seconds, client, Path(d), args.loop))
+    rows = {name: _pool(r) for name, r in runs.items()}
     load = os.getloadavg()
     if args.json:
         out = {}
@@ -147,6 +163,29 @@ def main() -> None:
         pct = ", ".join(f"{k} {v:.3g}" for k, v in r["latency_ms"].items() if k != "max")
         print(f"{name:<10} {r['cycles']:>8} {r['missed_fraction'] * 100:>9.3f} {r['worst_late_ms']:>9.2f} "
               f"{r['drive_stops']:>6}  {pct or '-'}")
+    if args.rounds > 1:
+        for name, r in rows.items():
+            if r is not None:
+                print(f"{name:<10} per run, missed %: " + ", ".join(f"{f * 100:.3f}" for f in r["per_run"]))
+        base = rows["no_client"]
+        for name in ("ws_client", "browser"):
+            if rows[name] is not None and base is not None:
+                print(f"{name} - no_client: {(rows[name]['missed_fraction'] - base['missed_fraction']) * 100:+.3f} "
+                      "percentage point (pooled)")
+
+
+def _pool(runs: list[dict | None]) -> dict | None:
+    """One row's runs as one: cycles, missed slots and stops summed, the worst lateness the worst of them,
+    the percentiles those of the last run (a histogram per run), and each run's missed fraction."""
+    done = [r for r in runs if r is not None]
+    if not done:
+        return None
+    cycles = sum(r["cycles"] for r in done)
+    missed = sum(r["missed"] for r in done)
+    return {"cycles": cycles, "missed": missed, "missed_fraction": missed / max(cycles + missed, 1),
+            "worst_late_ms": max(r["worst_late_ms"] for r in done),
+            "drive_stops": sum(r["drive_stops"] for r in done), "latency_ms": done[-1]["latency_ms"],
+            "per_run": [r["missed_fraction"] for r in done]}
 
 
 if __name__ == "__main__":

@@ -59,6 +59,7 @@ class DriveClock:
             self._clear_error(SYNC_LENGTH_ERROR)
         if self.master_clock == CLOCK_SLOTS and data:
             self._catch_up(data[0])
+        self._syncs_since_rpdo += 1
         self._synced = True  # serve() re-anchors the wall clock here
         self._cycle(sync=True)
 
@@ -70,7 +71,9 @@ class DriveClock:
         last, self._slot = self._slot, counter
         if last is None or self._free_running:
             return
-        for _ in range((counter - last - 1) % SLOT_COUNTER_SPAN):
+        skipped = (counter - last - 1) % SLOT_COUNTER_SPAN
+        self._skipped_since_rpdo += skipped
+        for _ in range(skipped):
             self._cycle(sync=False)
 
     def _cycle(self, sync: bool) -> None:
@@ -152,8 +155,20 @@ class DriveClock:
             return
         self._ms_since_rpdo += self.cycle_ms
         if self._ms_since_rpdo > self._rpdo_timeout_ms:
+            self.deadline_why = self._deadline_account()
             self._ms_since_rpdo = None  # one reaction; monitoring restarts with the next RPDO
             self._communication_lost(RPDO_TIMEOUT_ERROR)
+
+    def _deadline_account(self) -> str:
+        """Whose the drive time without a setpoint was: SYNCs that came without one (frames lost or late),
+        slots the master's counter said it skipped (a late master), or the drive's own clock (no SYNC)."""
+        cycles = round(self._ms_since_rpdo / self.cycle_ms)
+        syncs, skipped = self._syncs_since_rpdo, self._skipped_since_rpdo
+        # (the cycle that fired may be a SYNC's still to be counted, or one of a catch-up not yet run)
+        own = max(0, cycles - syncs - skipped)
+        return (f"{self._ms_since_rpdo:g} ms of drive time without the RPDO (deadline {self._rpdo_timeout_ms:g} ms); "
+                f"since the last one: {syncs} SYNC(s), {skipped} slot(s) the master skipped (its SYNC counter), "
+                f"{own} cycle(s) on the drive's own clock (no SYNC)")
 
     def _watch_master(self) -> None:
         """Heartbeat consumer (0x1016) on the drive's clock, from the master's first heartbeat on."""

@@ -100,6 +100,7 @@ class DrivePdos:
             return  # another RPDO (an event-driven controlword, type 255): the deadline watches the one it was set on
         if self._rpdo_timeout_ms:
             self._ms_since_rpdo = 0.0
+            self._syncs_since_rpdo = self._skipped_since_rpdo = 0
         if errors:
             self._clear_error(RPDO_TIMEOUT_ERROR)
         if self.faults is not None and self.faults.held:

@@ -148,6 +148,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self.cycle_ms = plant.dt * 1000.0
         self.boot_delay_ms = float(boot_delay_ms)
         self.sync_loss_ms = sync_loss_ms
+        #: the last RPDO deadline's account of the time without a setpoint (whose it was); "" if none fired
+        self.deadline_why = ""
         self.faults = faults
         self.nmt = NmtState.INITIALISING
         self.time_ms = 0.0  # the drive's own clock
@@ -244,6 +246,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
             self.network.unsubscribe(HEARTBEAT_BASE + self._consumer[0], self._on_master_heartbeat)
         self._consumer, self._ms_since_master, self.master_lost = None, None, False
         self._rpdo_timeout_ms, self._ms_since_rpdo = 0, None
+        self._syncs_since_rpdo = self._skipped_since_rpdo = 0  # what the deadline counted since the last RPDO
         self._deadline_comm = cia402.RPDO_COMM  # the RPDO whose event timer (0x14xx:05) was written last
         self._set_sync_cob(self._od_default(cia402.COB_ID_SYNC, absent=SYNC_COB_ID) & 0x7FF)
         self._errors.clear()

@@ -352,6 +352,11 @@ def test_told_the_master_s_slots_a_sync_whose_counter_jumped_first_runs_the_gap(
         s.serve(0.001)
     assert d.syncs + d.free_steps - before == 1 + 1 + 1 + 5 + 1 and d.free_steps == 4
     assert s.reactions == [] and d.power is cia402.PowerState.OPERATION_ENABLED
+    assert s.drive.deadline_why == ""
     s.send(0x080, bytes([7 + 18]))  # 18 slots without a setpoint: past the 17 ms deadline, caught in the gap
     s.serve(0.001)
     assert d.power is cia402.PowerState.SWITCH_ON_DISABLED and d.error_code == 0x8250
+    # the drive says whose the time was: the master's skipped slots, not lost frames nor its own clock
+    why = s.drive.deadline_why
+    assert why.startswith("18 ms of drive time") and "1 SYNC(s), 17 slot(s) the master skipped" in why
+    assert "0 cycle(s) on the drive's own clock" in why

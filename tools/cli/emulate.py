@@ -190,6 +190,7 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
     from drivectl.driver.network import BusLog, log_sent_frames
     from drivectl.machine.build import axis_profile, plant_specs, readable_eds
     from drivectl.machine.config import load_config
+    from drivectl.plant_emulator.drive_constants import RPDO_TIMEOUT_ERROR
     from drivectl.plant_emulator.effects import parse_effect
     from drivectl.plant_emulator.faults import FaultInjector, FaultSpecError, parse_fault
     from drivectl.plant_emulator.node402 import EmulatedDrive, deliver
@@ -264,8 +265,9 @@ def _emulate(args: argparse.Namespace, stop: StopRequest) -> int:
             for drive in drives:
                 code = drive.check_master()
                 if code:
+                    why = f"; {drive.deadline_why}" if code == RPDO_TIMEOUT_ERROR else ""
                     print(f"node {drive.node_id}: master lost ({cia402.error_text(code)}): drive stopped "
-                          f"({drive.drive.power.value}, 0x603F = 0x{drive.drive.error_code:04X})",
+                          f"({drive.drive.power.value}, 0x603F = 0x{drive.drive.error_code:04X}){why}",
                           file=sys.stderr, flush=True)
     finally:
         for drive in drives:

@@ -21,7 +21,7 @@ run: axis, controller, default, case, command, max_um, peak_to_peak_um, status).
 fallback (issue 26 point 4), on SimAxis; wall-clock figures, disturbed by other load.
 
 Usage: .venv/bin/python bench/standstill.py [--json] [--defaults] [--axes x,y,z] [--controllers mbc,asmc]
-       [--move-cost]
+       [--cycle-s 0.002] [--move-cost]
 """
 
 from __future__ import annotations
@@ -163,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print exactly one JSON object")
     ap.add_argument("--defaults", action="store_true", help="only each axis's default controller")
     ap.add_argument("--axes", default="x,y,z")
+    ap.add_argument("--cycle-s", type=float, default=None,
+                    help="the servo cycle (default: the embedded machine's, 1 ms); a controller tuned at one "
+                    "cycle may not hold at another")
     ap.add_argument("--controllers", default=",".join(CONTROLLERS))
     ap.add_argument("--move-cost", action="store_true", help="only mbc's per-cycle cost of a move, with and "
                     "without the move's preview (issue 26 point 4)")
@@ -178,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
     from drivectl.machine.config import load_config
 
     cfg = load_config()
+    if args.cycle_s is not None:
+        if not args.cycle_s > 0:
+            ap.error(f"--cycle-s: must be > 0 s, got {args.cycle_s!r}")
+        cfg = replace(cfg, cycle_s=args.cycle_s)
     rows: list[dict] = []
     for name in args.axes.split(","):
         ac = cfg.axis(name)

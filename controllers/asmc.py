@@ -99,6 +99,15 @@ LAWS = (11, 12, 13, 14)
 CREEP_M_S = 1e-5
 
 
+def standstill_gain_at(gain: float, tuned_cycle_s: float, dt: float) -> float:
+    """The standstill gain at cycle ``dt`` of one tuned at ``tuned_cycle_s``: scaled by (tuned / dt)^2 at a
+    longer cycle, so the rest loop (the model's mass on the standstill stiffness, behind the one-cycle
+    transport delay) keeps its natural frequency times the cycle, the phase the delay takes from it; never
+    raised at a shorter one. y's 300 N/(um s), tuned at 1 ms, stood in a 585-925 um limit cycle at 2 ms and
+    holds there at 75 (docs/standstill.md, "The cycle")."""
+    return gain * min(1.0, (tuned_cycle_s / dt) ** 2)
+
+
 @dataclass
 class AsmcSettings(Settings):
     law: int = choice(14, LAWS, doc="gain law, paper 004 eq (11)-(14)")
@@ -123,6 +132,9 @@ class AsmcSettings(Settings):
     standstill_s: float = param(0.05, lo=0.0, lo_open=True, unit="s",
                                 doc="standstill: integral time; the stiffness on the error outside the band is "
                                 "standstill_gain x standstill_s (mbc's standstill, docs/standstill.md)")
+    standstill_cycle_s: float = param(0.001, lo=0.0, lo_open=True, unit="s",
+                                      doc="the cycle standstill_gain is tuned for; at a longer cycle it acts "
+                                      "scaled by (standstill_cycle_s / cycle)^2 (docs/standstill.md)")
 
     def validate(self, source: str = "settings", prefix: str = "") -> None:
         super().validate(source, prefix)
@@ -247,9 +259,10 @@ class Asmc(Controller):
         #: the standstill integral force, N (its stiffness part aside): built only while the reference rests
         #: and the axis sticks, started from the law's last Coulomb compensation (docs/standstill.md)
         self.hold_force = 0.0
-        self._hold_rate = float(s.standstill_gain) * 1e6 * self.dt  # N per m of error per cycle
+        gain = standstill_gain_at(float(s.standstill_gain), float(s.standstill_cycle_s), self.dt) * 1e6  # N/(m s)
+        self._hold_rate = gain * self.dt  # N per m of error per cycle
         self._hold_band = float(s.standstill_band_m)
-        self._hold_stiffness = float(s.standstill_gain) * 1e6 * float(s.standstill_s)  # N/m
+        self._hold_stiffness = gain * float(s.standstill_s)  # N/m
 
     def adapt(self, s_mm: Any) -> Any:
         """One cycle of the gain law for surface ``s_mm`` (mm/s): k += dt dk/dt, clamped. Returns k."""

@@ -154,3 +154,26 @@ def test_session_moves_run_on_mbcs_preview_not_its_extrapolation(tmp_path):
         m.run_until(lambda: z._rt.traj.arrived, 5)
         n = len(hits)
         assert n > 100 and all(hits), (n, sum(hits))
+
+
+def config_at(cycle_s: float, axis: str, **settings: object):
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    data["cycle_s"] = cycle_s
+    data["axes"][axis]["controller_settings"] = {**data["axes"][axis].get("controller_settings", {}), **settings}
+    return parse_config(data, "<test>")
+
+
+@pytest.mark.parametrize("tuned_cycle_s, holds", [(0.001, True), (0.002, False)])
+def test_asmc_standstill_tuned_at_1_ms_holds_y_at_2_ms_only_scaled_to_the_cycle(tuned_cycle_s, holds, tmp_path):
+    """At the 2 ms cycle doctor may recommend, y's standstill gain as tuned for 1 ms (300 N/(um s), taken
+    unscaled when told it was tuned at 2 ms) stood in a limit cycle at the effort limit, hundreds of um peak
+    to peak, while the reference rested; scaled by (1 ms / 2 ms)^2 it holds (docs/standstill.md, "The cycle")."""
+    cfg = config_at(0.002, "y", standstill_cycle_s=tuned_cycle_s)
+    with drivectl.connect(cfg, axes=["y"], ring_s=6.0, fault_dir=tmp_path) as m:
+        m.axes["y"].enable()
+        m.axes["y"].move_by(0.01).wait(10)
+        worst, pp = hold(m, "y")
+    if holds:
+        assert worst <= LIMIT_UM and pp <= LIMIT_UM, (worst, pp)
+    else:
+        assert pp > 100.0, (worst, pp)

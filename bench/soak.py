@@ -192,6 +192,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             st = m.status()
             stop_poll.set()
             poller.join(1.0)
+            holds = _holds(m)
             stall = _stall(m, stall_s)
     finally:
         stop_steal.set()
@@ -207,7 +208,39 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
             "_status": st, "_polls": polls[0], "_faults": fault_lines,
             "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at, "_cycle_s": cycle_s,
-            "_doctor": doctor, "_drive_lines": drive_lines(tmp / "emulator.log")}
+            "_doctor": doctor, "_drive_lines": drive_lines(tmp / "emulator.log"), "_holds": holds}
+
+
+def _holds(m, rest_s: float = 0.5, hold_s: float = 1.0) -> dict:
+    """Every axis at rest at the end: the error's peak to peak (m) over ``hold_s`` after ``rest_s``, and whether
+    the effort sat at its limit (a limit cycle inside the following-error window faults nothing: y's at 2 ms
+    before docs/standstill.md "The cycle"). Axes not in servo are left out."""
+    from drivectl.controllers.runtime.capture import CaptureError
+
+    time.sleep(rest_s)
+    caps = {n: ax.capture(trigger="now", pre=0.0, post=hold_s) for n, ax in m.axes.items() if ax.state == "servo"}
+    out = {}
+    for n, cap in caps.items():
+        try:
+            tr = cap.wait(hold_s + 5.0)
+        except (TimeoutError, CaptureError) as exc:  # a fault ended it: the fault lines say which
+            out[n] = {"error": str(exc)}
+            continue
+        limit = m.axes[n].limits.max_effort
+        out[n] = {"peak_to_peak_m": float(tr.error.max() - tr.error.min()),
+                  "at_limit": bool(abs(tr.effort).max() >= 0.999 * limit)}
+    return out
+
+
+def holds_line(holds: dict) -> str:
+    parts = []
+    for n, h in holds.items():
+        if "error" in h:
+            parts.append(f"{n} not captured ({h['error']})")
+        else:
+            parts.append(f"{n} {h['peak_to_peak_m'] * 1e6:.2f} um p-p" + (", the effort AT ITS LIMIT (a limit cycle)"
+                                                                         if h["at_limit"] else ""))
+    return f"hold at the end ({len(holds)} axes at rest, 1 s): " + ("; ".join(parts) or "no axis in servo")
 
 
 def _config_text(cycle_s: float, port: int | None = None) -> str:
@@ -346,6 +379,7 @@ def main() -> None:
                 print(f"  {line}", file=sys.stderr)
             for line in r["_drive_lines"][:20]:
                 print(f"  emulated drive: {line}", file=sys.stderr)
+            print(holds_line(r["_holds"]), file=sys.stderr)
             print(stall_line(r["_stall"]), file=sys.stderr)
             print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
             print(steal_line(r), file=sys.stderr)
@@ -367,6 +401,7 @@ def main() -> None:
             print(f"  {line}")
         for line in r["_drive_lines"][:10]:
             print(f"  emulated drive: {line}")
+        print(holds_line(r["_holds"]))
         print(stall_line(stall))
         print(loop_line(st))
         print(steal_line(r))

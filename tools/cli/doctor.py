@@ -190,6 +190,11 @@ def cmd_doctor(args: argparse.Namespace) -> int:
                           "cycle_s": cfg.cycle_s, "recommended_cycle_s": cycle, "granted": status["granted"],
                           "verdict": verdict}))
         return VERDICT_EXIT[verdict]
+    holds = []
+    if cycle > cfg.cycle_s:  # a gain tuned at one cycle may not hold at another: simulated, said beside it
+        from drivectl.tools.commissioning.cycle_check import hold_at
+
+        holds = [hold_at(cfg, n, cycle) for n in names]
     k = kernel()
     print(f"host      {platform.node()}: {os.cpu_count()} CPUs, kernel {k['release']} "
           f"({'PREEMPT_RT' if k['preempt_rt'] else 'not PREEMPT_RT'}); load average "
@@ -203,6 +208,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     print("lateness  " + "  ".join(f"{q} {v:.3f} ms" for q, v in lat.items()))
     print(f"cycle     {cycle * 1e3:g} ms recommended" + (" (as configured)" if cycle == cfg.cycle_s else
           f" (cycle_s = {cycle!r} in the configuration; {cfg.cycle_s * 1e3:g} ms is configured)") + f": {cycle_why}")
+    for h in holds:
+        print(f"          axis {h.axis}: {h.text()}")
     if steal0 and steal1:  # the hypervisor's share of the lateness (host.py): no setting in this guest helps it
         print("steal     " + ", ".join(f"{c} {(steal1[c] - steal0.get(c, steal1[c])) * 1e3:.0f} ms" for c in steal1)
               + " taken by the hypervisor during the probe (on a virtual machine: its host ran something else)")

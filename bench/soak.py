@@ -216,6 +216,7 @@ def _holds(m, rest_s: float = 0.5, hold_s: float = 1.0) -> dict:
     the effort sat at its limit (a limit cycle inside the following-error window faults nothing: y's at 2 ms
     before docs/standstill.md "The cycle"). Axes not in servo are left out."""
     from drivectl.controllers.runtime.capture import CaptureError
+    from drivectl.tools.commissioning.cycle_check import rest_figures
 
     time.sleep(rest_s)
     caps = {n: ax.capture(trigger="now", pre=0.0, post=hold_s) for n, ax in m.axes.items() if ax.state == "servo"}
@@ -226,9 +227,8 @@ def _holds(m, rest_s: float = 0.5, hold_s: float = 1.0) -> dict:
         except (TimeoutError, CaptureError) as exc:  # a fault ended it: the fault lines say which
             out[n] = {"error": str(exc)}
             continue
-        limit = m.axes[n].limits.max_effort
-        out[n] = {"peak_to_peak_m": float(tr.error.max() - tr.error.min()),
-                  "at_limit": bool(abs(tr.effort).max() >= 0.999 * limit)}
+        pp, _, at_limit = rest_figures(tr.error, tr.effort, m.axes[n].limits.max_effort)
+        out[n] = {"peak_to_peak_m": pp, "at_limit": at_limit}
     return out
 
 

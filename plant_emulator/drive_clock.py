@@ -66,14 +66,24 @@ class DriveClock:
     def _catch_up(self, counter: int) -> None:
         """The master's slot count in the SYNC counter (0x5FFF:2 = slots): the slots since the last SYNC but this
         one's run first on the drive's own clock, the setpoint held (a late master skipped them; a real drive's
-        plant moves on meanwhile, and its RPDO deadline counts them). After its own clock ran (no SYNC for the
-        SYNC-loss window) the counter only sets the count again."""
+        plant moves on meanwhile, and its RPDO deadline counts them). Each cycle of wall time runs once: cycles
+        the drive's own clock already ran (:meth:`serve`, a gap past the paced window) are not run again for
+        the slots the counter says were skipped over the same time. That time may be told one SYNC late: a
+        master preempted between taking its slot and sending the SYNC sends it late (the drive ran the gap),
+        and the next SYNC's counter says the master skipped the slots of that gap. After its own clock ran
+        longer than the counter can tell (half its span) the counter only sets the count again."""
         last, self._slot = self._slot, counter
-        if last is None or self._free_running:
+        own, self._own_cycles = self._own_cycles, 0
+        ahead, self._ahead = self._ahead + own, 0
+        if last is None or own >= SLOT_COUNTER_SPAN // 2:
             return
         skipped = (counter - last - 1) % SLOT_COUNTER_SPAN
-        self._skipped_since_rpdo += skipped
-        for _ in range(skipped):
+        run = skipped - ahead
+        if run < 0:
+            self._ahead = own  # the gap this SYNC ended, ahead of the counter: its slots come with the next SYNC
+            return
+        self._skipped_since_rpdo += run
+        for _ in range(run):
             self._cycle(sync=False)
 
     def _cycle(self, sync: bool) -> None:
@@ -184,6 +194,7 @@ class DriveClock:
         nothing else (never its own clock: a slow master is never late, a silent one stops time); slots, a SYNC
         first runs the slots its counter says the master skipped (_catch_up); own, as at power-on."""
         self.master_clock, self._slot = mode, None
+        self._own_cycles = self._ahead = 0
         if mode == CLOCK_LOCKSTEP:
             self._window_ms, self._free_running = math.inf, False
         else:
@@ -233,6 +244,7 @@ class DriveClock:
         n = int((gap_ms - 0.5 * self.cycle_ms) // self.cycle_ms)
         for _ in range(n):
             self._cycle(sync=False)
+        self._own_cycles += n
         self._anchor += n * self.cycle_ms / 1000.0
 
     def wall_clock(self, now: float | None) -> None:

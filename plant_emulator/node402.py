@@ -162,6 +162,8 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self.master_clock = CLOCK_OWN  # what the master said its clock is (0x5FFF:2, driver/emulator_clock.py)
         self._slot: int | None = None  # the last SYNC's counter (the master's slot count, CLOCK_SLOTS)
+        #: cycles the drive's own clock ran since the last SYNC, and those it ran ahead of the counter (_catch_up)
+        self._own_cycles = self._ahead = 0
         self._heartbeat_cycles = 0
         self._consumer: tuple[int, int] | None = None  # master node id, timeout ms (0x1016 sub 1)
         self._ms_since_master: float | None = None  # None until the first heartbeat of the master

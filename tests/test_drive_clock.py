@@ -360,3 +360,37 @@ def test_told_the_master_s_slots_a_sync_whose_counter_jumped_first_runs_the_gap(
     why = s.drive.deadline_why
     assert why.startswith("18 ms of drive time") and "1 SYNC(s), 17 slot(s) the master skipped" in why
     assert "0 cycle(s) on the drive's own clock" in why
+
+
+def test_a_sync_sent_late_after_its_slot_is_not_run_twice_when_the_next_counter_skips(served):
+    """Issue 39 point 3 (an in-process soak: x 'jumped 0.544 mm' with no slot lost at that sample). Paced in-process
+    the drive runs a gap past 2 cycles on its own clock. A master preempted between taking its slot and sending
+    the SYNC sends it 9 ms late: the drive ran those 9 cycles; the next SYNC's counter then says the master
+    skipped 9 slots. The same wall time must run once, not twice (the plant 9 ms ahead of the master)."""
+    from drivectl.driver.emulator_clock import CLOCK_SLOTS, CLOCK_SUB, EMULATOR_OBJECT
+
+    s = served
+    s.sdo_write(0x1400, 5, 17, 2)  # RPDO deadline 17 ms
+    s.enable()
+    s.sdo_write(EMULATOR_OBJECT, CLOCK_SUB, CLOCK_SLOTS, 1)
+    d = s.drive.drive
+    s.drive.wall_clock(None)
+    s.drive.wall_clock(s.now)  # paced in-process: the SYNC-loss window is 2 cycles
+
+    def sync(counter: int, wait_s: float) -> None:
+        s.send(0x201, struct.pack("<Hh", 0x0F, 0))
+        s.send(0x080, bytes([counter]))
+        s.serve(wait_s)
+
+    for counter in (10, 11):
+        sync(counter, 0.001)
+    before, t = d.syncs + d.free_steps, s.now
+    s.serve(0.0095)  # slot 12 taken on time, its SYNC sent 9.5 ms late: the drive runs the gap on its own clock
+    sync(12, 0.0005)
+    sync(22, 0.001)  # the master woke late: slots 13..21 skipped (the same wall time)
+    cycles = d.syncs + d.free_steps - before
+    assert round((s.now - t) * 1000) == 11 and 10 <= cycles <= 11, cycles
+    assert s.reactions == [] and d.power is cia402.PowerState.OPERATION_ENABLED
+    for counter in (23, 24):  # back on the SYNCs: one cycle each, nothing carried over
+        sync(counter, 0.001)
+    assert d.syncs + d.free_steps - before == cycles + 2

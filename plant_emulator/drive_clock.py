@@ -66,22 +66,24 @@ class DriveClock:
     def _catch_up(self, counter: int) -> None:
         """The master's slot count in the SYNC counter (0x5FFF:2 = slots): the slots since the last SYNC but this
         one's run first on the drive's own clock, the setpoint held (a late master skipped them; a real drive's
-        plant moves on meanwhile, and its RPDO deadline counts them). Each cycle of wall time runs once: cycles
-        the drive's own clock already ran (:meth:`serve`, a gap past the paced window) are not run again for
-        the slots the counter says were skipped over the same time. That time may be told one SYNC late: a
-        master preempted between taking its slot and sending the SYNC sends it late (the drive ran the gap),
-        and the next SYNC's counter says the master skipped the slots of that gap. After its own clock ran
-        longer than the counter can tell (half its span) the counter only sets the count again."""
+        plant moves on meanwhile, and its RPDO deadline counts them). Each cycle of wall time runs once.
+
+        Cycles the drive's own clock ran just before this SYNC (:meth:`serve`, a gap past the paced window) stand
+        for the skipped slots of that gap. More of them than the counter skipped: the SYNC came late after its
+        slot was taken (a master held off between the two); the drive ran that time, and the next SYNC's counter
+        says the master skipped those slots: they are not run again. After its own clock ran longer than the
+        counter can tell (half its span) the counter only sets the count again."""
         last, self._slot = self._slot, counter
         own, self._own_cycles = self._own_cycles, 0
-        ahead, self._ahead = self._ahead + own, 0
+        ahead, self._ahead = self._ahead, 0  # what an earlier SYNC ran beyond its counter (used once)
         if last is None or own >= SLOT_COUNTER_SPAN // 2:
             return
         skipped = (counter - last - 1) % SLOT_COUNTER_SPAN
-        run = skipped - ahead
-        if run < 0:
-            self._ahead = own  # the gap this SYNC ended, ahead of the counter: its slots come with the next SYNC
+        if own > skipped:
+            self._ahead = own - skipped  # a late SYNC: the gap it ended is ahead of the counter
             return
+        run = skipped - own
+        run -= min(ahead, run)
         self._skipped_since_rpdo += run
         for _ in range(run):
             self._cycle(sync=False)

@@ -363,10 +363,10 @@ def test_told_the_master_s_slots_a_sync_whose_counter_jumped_first_runs_the_gap(
 
 
 def test_a_sync_sent_late_after_its_slot_is_not_run_twice_when_the_next_counter_skips(served):
-    """Issue 39 point 3 (an in-process soak: x 'jumped 0.544 mm' with no slot lost at that sample). Paced in-process
-    the drive runs a gap past 2 cycles on its own clock. A master preempted between taking its slot and sending
-    the SYNC sends it 9 ms late: the drive ran those 9 cycles; the next SYNC's counter then says the master
-    skipped 9 slots. The same wall time must run once, not twice (the plant 9 ms ahead of the master)."""
+    """A drive told the master's slots (0x5FFF:2) whose SYNC-loss window is short enough for a gap to run on its
+    own clock (2 cycles here, as a paced in-process drive's). A master held off between taking its slot and
+    sending the SYNC sends it 9.5 ms late: the drive ran that gap; the next SYNC's counter then says the master
+    skipped those slots. The same wall time runs once, not twice (the plant 9 cycles ahead of the master)."""
     from drivectl.driver.emulator_clock import CLOCK_SLOTS, CLOCK_SUB, EMULATOR_OBJECT
 
     s = served
@@ -389,7 +389,9 @@ def test_a_sync_sent_late_after_its_slot_is_not_run_twice_when_the_next_counter_
     sync(12, 0.0005)
     sync(22, 0.001)  # the master woke late: slots 13..21 skipped (the same wall time)
     cycles = d.syncs + d.free_steps - before
-    assert round((s.now - t) * 1000) == 11 and 10 <= cycles <= 11, cycles
+    # 11 slots by the counter (11 to 22), 11 ms of wall time: 11 cycles (the gap run twice before: 19, the plant
+    # 9 cycles ahead of the master's time)
+    assert round((s.now - t) * 1000) == 11 and cycles == 11, cycles
     assert s.reactions == [] and d.power is cia402.PowerState.OPERATION_ENABLED
     for counter in (23, 24):  # back on the SYNCs: one cycle each, nothing carried over
         sync(counter, 0.001)

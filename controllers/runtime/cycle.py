@@ -177,7 +177,7 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
 STALE_M = 50e-6
 
 
-def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int) -> Feedback:
+def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int, late: bool = False) -> Feedback:
     """A bridged cycle's sample (the drive's TPDOs lost or late: ``axis.lost_cycles``) as the axis following its
     reference with the tracking error of its last real sample; a real sample is returned as it is and its error
     kept. The axis itself can only extrapolate at its last velocity, which knows nothing of the reference: on a
@@ -188,10 +188,11 @@ def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int) -> Feedback:
     The first real sample after bridged cycles is judged by which cycle's position it fits: nearer the last
     bridged one's (more than :data:`STALE_M` from this one's), it answered the SYNC before, a drive late past
     the budget twice running (docs/timing.md), and this cycle is bridged too (``axis.stale()``; CycleFault past
-    the axis's limit of bridged cycles)."""
+    the axis's limit of bridged cycles). ``late``: the sample is real but was taken well after this cycle's slot
+    (its SYNC went out late: the resident loop's ``SYNC_LATE_SLOTS``): bridged the same way."""
     axis = ch.axis
     held = ch.held_error
-    if axis.lost_cycles:
+    if axis.lost_cycles or late:
         if held is None:
             return fb
         pos = ch.bridged_at = ref.position - held

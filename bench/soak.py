@@ -341,8 +341,7 @@ def cycle_line(r: dict) -> str:
 def loop_line(st: dict) -> str:
     """The loop's own record at the end (before the stall): what a fault may be laid at."""
     return ("loop: lateness " + ", ".join(f"{q} {v:.2f}" for q, v in st["latency_ms"].items()) + " ms; skipped "
-            f"{st['skipped_cycles']} slots; SYNCs later than their slot (bridged) {st.get('late_syncs', 0)}; "
-            f"stalls {st['stalls']}; collections {st['gc_collections']}, worst "
+            f"{st['skipped_cycles']} slots; stalls {st['stalls']}; collections {st['gc_collections']}, worst "
             f"{st['gc_worst_ms']:.2f} ms; deadlines " + ", ".join(f"{n} {v:g}" for n, v in st["deadline_ms"].items())
             + " ms")
 

@@ -135,9 +135,6 @@ class Axis:
     lost_cycles: int = 0
     #: cycles bridged since the axis was opened; None on a transport that cannot lose a sample
     lost_total: int | None = None
-    #: the wall time (the loop's clock) this cycle's SYNC went out at; None where the transport does not know it
-    #: (no SYNC of its own, a transport's periodic SYNC, lockstep)
-    sync_at: float | None = None
     #: the last EMCY (error code, cycle); None: none received (or no bus)
     last_emcy: tuple[int, int] | None = None
 

@@ -406,8 +406,6 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
                 raise AxisError(f"axis {self.name}: SYNC not sent: {exc}", FaultKind.BUS_ERROR) from None
             if self._paced:  # the cycle's TPDO waits, every axis's, end at one time after this SYNC
                 clock.ticked_at = self._wall()
-        if self._paced and clock.periodic is None:
-            self.sync_at = clock.ticked_at  # (every axis of the bus: the one SYNC's time)
         self._cycle = cycle = clock.cycle
         if clock.periodic is not None and clock.periodic.rogue and self._foreign is None:
             self._foreign = (FaultKind.ROGUE_SYNC, "SYNCs closer than half a period apart (a second SYNC producer "
@@ -590,7 +588,6 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
             self._tell_slots(wall is not None)
         self._paced = wall is not None
         self._wall = wall or _no_wall
-        self.sync_at = None
         self._lost_limit, self._tpdo_budget = self.max_lost_cycles, self.tpdo_timeout
         if wall is not None and not self.lockstep and self.rpdo_timeout_ms > 0:
             # across processes on the wall clock a cycle bridged for want of its TPDOs is mostly a late drive or

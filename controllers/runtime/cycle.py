@@ -139,6 +139,8 @@ class Channel:
     held_velocity_error: float = field(default=0.0, init=False, repr=False)
     #: the position the last cycle bridged with (m); None: the last cycle had a real sample
     bridged_at: float | None = field(default=None, init=False, repr=False)
+    #: real samples judged one SYNC old in a row (:func:`bridge`); each fresh frame resets the axis's own count
+    stale_run: int = field(default=0, init=False, repr=False)
 
 
 class CycleFault(Exception):
@@ -175,9 +177,14 @@ def sample_axis(ch: Channel, k: int) -> Feedback:
 #: two this far apart (m), answered the SYNC before: beyond an encoder's and a tracking error's noise, below
 #: what a sample that old costs (at 74 mm/s one slot is 74 um; across a late wake-up 8-10 slots, 0.6-0.7 mm)
 STALE_M = 50e-6
+#: real samples in a row judged one SYNC old before the cycle faults: each verdict bridges the cycle on a guess,
+#: and the axis's count of bridged cycles restarts with every frame that came, so a chain of verdicts had no
+#: bound: an axis that fell behind its guess stayed nearer the last one, and the law drove it open-loop at its
+#: effort limit (z ran 18 mm away in 0.1 s in an in-process soak, docs/timing.md)
+STALE_RUN_MAX = 3
 
 
-def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int, late: bool = False) -> Feedback:
+def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int) -> Feedback:
     """A bridged cycle's sample (the drive's TPDOs lost or late: ``axis.lost_cycles``) as the axis following its
     reference with the tracking error of its last real sample; a real sample is returned as it is and its error
     kept. The axis itself can only extrapolate at its last velocity, which knows nothing of the reference: on a
@@ -188,11 +195,10 @@ def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int, late: bool = False
     The first real sample after bridged cycles is judged by which cycle's position it fits: nearer the last
     bridged one's (more than :data:`STALE_M` from this one's), it answered the SYNC before, a drive late past
     the budget twice running (docs/timing.md), and this cycle is bridged too (``axis.stale()``; CycleFault past
-    the axis's limit of bridged cycles). ``late``: the sample is real but was taken well after this cycle's slot
-    (its SYNC went out late: the resident loop's ``SYNC_LATE_SLOTS``): bridged the same way."""
+    the axis's limit of bridged cycles)."""
     axis = ch.axis
     held = ch.held_error
-    if axis.lost_cycles or late:
+    if axis.lost_cycles:
         if held is None:
             return fb
         pos = ch.bridged_at = ref.position - held
@@ -202,6 +208,11 @@ def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int, late: bool = False
         ch.bridged_at = None
         now = ref.position - held
         if (now - before > STALE_M or before - now > STALE_M) and abs(fb.position - before) < abs(fb.position - now):
+            ch.stale_run += 1
+            if ch.stale_run > STALE_RUN_MAX:
+                raise CycleFault(StopReason.FAULT, Fault(FaultKind.IMPLAUSIBLE_POSITION, axis.name, k, (
+                    f"axis {axis.name}: {ch.stale_run} samples in a row behind the position bridged for them (each "
+                    f"nearer the cycle before's): the axis is not where the bridge assumes")), False)
             try:
                 axis.stale()
             except AxisError as exc:
@@ -209,6 +220,7 @@ def bridge(ch: Channel, ref: Reference, fb: Feedback, k: int, late: bool = False
                                  False) from None
             ch.bridged_at = now
             return Feedback(fb.time, now, ref.velocity - ch.held_velocity_error)
+    ch.stale_run = 0
     ch.held_error = ref.position - fb.position
     ch.held_velocity_error = ref.velocity - fb.velocity
     return fb

@@ -70,9 +70,6 @@ from drivectl.driver.axis import Axis, AxisError, FaultKind, Feedback
 from drivectl.driver.cia402 import PowerState, error_text
 
 CLOCKS = ("lockstep", "wall")
-#: a SYNC that went out more than this many slots after the time of the slot its cycle took: that cycle is
-#: bridged (the drive sampled that much later; docs/timing.md, "A SYNC later than its slot")
-SYNC_LATE_SLOTS = 1.5
 
 
 class AxisState(Enum):
@@ -102,7 +99,6 @@ class AxisRuntime:
         self.run: ProfileRun | None = None
         self.jog_until = 0  # loop slot (Loop.slot) at which an unrenewed jog stops (0: no jog)
         self.move_started = False
-        self.late_bridged = False  # this cycle was bridged for a late SYNC (never two running)
         self.ring = ring if ring is not None else Ring(ring_size)
         self.captures: list[Capture] = []
         self.fault: Fault | None = None
@@ -185,9 +181,6 @@ class ServoLoop:
         self.slots = 0  # wall clock: cycle slots since the start (run or skipped)
         self.slot = 0  # the slot the next cycle runs in, either clock (a late wake-up skips some): the dead man's count
         self.skipped = 0  # slots skipped because the loop was that far behind
-        #: cycles bridged because their SYNC went out over SYNC_LATE_SLOTS after their slot (_servo)
-        self.late_syncs = 0
-        self._due: float | None = None  # wall clock: the time of the slot this cycle runs in (None: lockstep)
         self._stamp = -1  # the slot of the last samples pushed into the rings (a stop's cycles follow it)
         self.gc_runs = 0
         self.gc_worst = 0.0
@@ -360,15 +353,6 @@ class ServoLoop:
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
-        late = False
-        if self._due is not None and ch.axis.sync_at is not None:
-            # the SYNC went out well after the slot was taken (the thread held off between the two): the drive
-            # sampled that much later, and its motion meanwhile is not this slot's. Bridged; the next cycle wakes
-            # late and takes the slot of its time (docs/timing.md, "A SYNC later than its slot")
-            late = ch.axis.sync_at - self._due > SYNC_LATE_SLOTS * self.dt and not rt.late_bridged
-            if late:
-                self.late_syncs += 1
-            rt.late_bridged = late
         run = rt.run
         if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
             ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
@@ -386,7 +370,7 @@ class ServoLoop:
             ref = run.next()
         else:
             ref = rt.traj.next()
-        fb = bridge(ch, ref, fb, rt.servo_k, late)
+        fb = bridge(ch, ref, fb, rt.servo_k)
         u = control(ch, ref, fb)
         pos = fb.position
         rt.position, rt.velocity, rt.reference, rt.effort = pos, fb.velocity, ref.position, u
@@ -622,7 +606,6 @@ class ServoLoop:
                     self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
                 self._elapsed = behind + 1
-                self._due = pacer.t0 + k * self.dt
                 self._cycle_all()
                 self._last_cycle_t = now()
                 k += 1
@@ -740,7 +723,6 @@ class ServoLoop:
             "missed_deadlines": self.missed,  # cycles that started over half a period late, skipped ones included
             "missed_fraction": self.missed / n,  # of the cycle slots since the start
             "skipped_cycles": self.skipped,
-            "late_syncs": self.late_syncs,
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
             "stall_bound_ms": self._first_bound * 1e3,

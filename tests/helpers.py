@@ -95,3 +95,17 @@ def reset_fault(axis, cycles: int = 4) -> None:
     for _ in range(cycles):
         axis.read()
         axis.write(0.0)
+
+
+def default_config_with(axis: str, cycle_s: float | None = None, **settings: object):
+    """The embedded machine's configuration with ``settings`` added to ``axis``'s controller settings (and the
+    cycle ``cycle_s``), parsed as a file would be."""
+    import tomllib
+
+    from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
+
+    data = tomllib.loads(DEFAULT_CONFIG_TOML)
+    if cycle_s is not None:
+        data["cycle_s"] = cycle_s
+    data["axes"][axis]["controller_settings"] = {**data["axes"][axis].get("controller_settings", {}), **settings}
+    return parse_config(data, "<test>")

@@ -3,16 +3,13 @@
 
 from __future__ import annotations
 
-import tomllib
+from helpers import default_config_with
 
-from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
 from drivectl.tools.commissioning.cycle_check import PEAK_TO_PEAK_M, hold_at
 
 
 def machine(**y_settings: object):
-    data = tomllib.loads(DEFAULT_CONFIG_TOML)
-    data["axes"]["y"]["controller_settings"] = {**data["axes"]["y"]["controller_settings"], **y_settings}
-    return parse_config(data, "<test>")
+    return default_config_with("y", **y_settings)
 
 
 def test_a_gain_tuned_for_another_cycle_is_caught_before_the_cycle_is_recommended():

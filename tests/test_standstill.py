@@ -7,22 +7,14 @@ plant. The same hold with the standstill logic off hunts (mbc) or stands off (as
 
 from __future__ import annotations
 
-import tomllib
-
 import numpy as np
 import pytest
+from helpers import default_config_with as config
 
 import drivectl
-from drivectl.machine.config import DEFAULT_CONFIG_TOML, parse_config
 
 SETTLE_S, HOLD_S = 0.3, 5.0
 LIMIT_UM = 0.5
-
-
-def config(axis: str, **settings: object):
-    data = tomllib.loads(DEFAULT_CONFIG_TOML)
-    data["axes"][axis]["controller_settings"] = {**data["axes"][axis].get("controller_settings", {}), **settings}
-    return parse_config(data, "<test>")
 
 
 def hold(m, name: str) -> tuple[float, float]:
@@ -156,19 +148,12 @@ def test_session_moves_run_on_mbcs_preview_not_its_extrapolation(tmp_path):
         assert n > 100 and all(hits), (n, sum(hits))
 
 
-def config_at(cycle_s: float, axis: str, **settings: object):
-    data = tomllib.loads(DEFAULT_CONFIG_TOML)
-    data["cycle_s"] = cycle_s
-    data["axes"][axis]["controller_settings"] = {**data["axes"][axis].get("controller_settings", {}), **settings}
-    return parse_config(data, "<test>")
-
-
 @pytest.mark.parametrize("tuned_cycle_s, holds", [(0.001, True), (0.002, False)])
 def test_asmc_standstill_tuned_at_1_ms_holds_y_at_2_ms_only_scaled_to_the_cycle(tuned_cycle_s, holds, tmp_path):
     """At the 2 ms cycle doctor may recommend, y's standstill gain as tuned for 1 ms (300 N/(um s), taken
     unscaled when told it was tuned at 2 ms) stood in a limit cycle at the effort limit, hundreds of um peak
     to peak, while the reference rested; scaled by (1 ms / 2 ms)^2 it holds (docs/standstill.md, "The cycle")."""
-    cfg = config_at(0.002, "y", standstill_cycle_s=tuned_cycle_s)
+    cfg = config("y", 0.002, standstill_cycle_s=tuned_cycle_s)
     with drivectl.connect(cfg, axes=["y"], ring_s=6.0, fault_dir=tmp_path) as m:
         m.axes["y"].enable()
         m.axes["y"].move_by(0.01).wait(10)

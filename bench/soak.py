@@ -341,9 +341,14 @@ def cycle_line(r: dict) -> str:
 def loop_line(st: dict) -> str:
     """The loop's own record at the end (before the stall): what a fault may be laid at."""
     return ("loop: lateness " + ", ".join(f"{q} {v:.2f}" for q, v in st["latency_ms"].items()) + " ms; skipped "
-            f"{st['skipped_cycles']} slots; stalls {st['stalls']}; collections {st['gc_collections']}, worst "
+            f"{st['skipped_cycles']} slots ({st.get('late_syncs', 0)} at a SYNC later than its slot); "
+            f"stalls {st['stalls']}; collections {st['gc_collections']}, worst "
             f"{st['gc_worst_ms']:.2f} ms; deadlines " + ", ".join(f"{n} {v:g}" for n, v in st["deadline_ms"].items())
             + " ms")
+
+
+def _interrupted(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
 
 
 def main() -> None:
@@ -360,6 +365,9 @@ def main() -> None:
     ap.add_argument("--loop", choices=("process", "thread"), default="process",
                     help="--wall: the loop in its own process (default) or a thread of this one")
     args = ap.parse_args()
+    # a SIGTERM (or a SIGINT where a background start ignores it) ends the soak as Ctrl-C does: through the
+    # cleanup, so the emulator and the hogs end with it instead of running on as orphans
+    signal.signal(signal.SIGTERM, _interrupted)
     if args.wall:
         if args.hog < 0:
             ap.error(f"--hog: must be 0 or more, got {args.hog}")

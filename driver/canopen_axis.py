@@ -615,6 +615,9 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         if on and not clock.slot_vetoed:
             clock.slot_counter = True
 
+    def watch_sync(self, slip: Callable[[], int] | None) -> None:
+        self.clock.slip = slip  # the bus's axes share the clock, each says the same
+
     def skip(self, slots: int) -> None:
         self.clock.skip(slots)  # the bus's axes share the clock, each says the same: set, not added
 

@@ -3,6 +3,8 @@ transport's periodic transmit while a wall-clock run lasts (driver/sync_source.p
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import can
 import canopen
 
@@ -29,6 +31,9 @@ class SyncClock:
         #: when the cycle's SYNC went (the pacer's clock; paced runs across processes): the TPDO waits end from it
         self.ticked_at = 0.0
         self._skipped = 0  # slots the loop skipped before this tick (it woke late): the cycle counts them
+        #: a paced run's loop: the slots it slipped since its cycle took its slot, asked just before the SYNC goes
+        #: out (the host may stop the loop between the two; the drive samples at the SYNC, docs/timing.md)
+        self.slip: Callable[[], int] | None = None
         #: SYNCs on the bus since the clock began, up to this cycle's (a skipped slot sends none: ``cycle`` counts
         #: slots, this counts frames); an axis counts its answers against it (CanopenAxis, docs/timing.md)
         self.syncs = 0
@@ -48,6 +53,8 @@ class SyncClock:
     def tick(self) -> None:
         prev, skipped, self._skipped = self.cycle, self._skipped, 0
         if self.periodic is None:
+            if self.slip is not None:
+                skipped += self.slip()
             self.cycle += 1 + skipped  # first: what answers this SYNC belongs to the new cycle
             self.syncs += 1
             if skipped:

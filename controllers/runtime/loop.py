@@ -62,7 +62,7 @@ from drivectl.controllers.runtime.cycle import (
 from drivectl.controllers.runtime.handles import MotionFault, Move, MoveStatus, ProfileRun
 from drivectl.controllers.runtime.host import HostMeasures, StealWatch
 from drivectl.controllers.runtime.motion import MotionLimits, Trajectory
-from drivectl.controllers.runtime.pacing import Pacer, pace_axes
+from drivectl.controllers.runtime.pacing import Pacer, pace_axes, slots_behind
 from drivectl.controllers.runtime.safe_stop import drive_error_code, quietly, stop_channels
 from drivectl.controllers.runtime.servo import STATE_CHANGE_CYCLES, trace_header
 from drivectl.controllers.runtime.timing import LatencyRecord, RecentLatency
@@ -182,6 +182,11 @@ class ServoLoop:
         self.slot = 0  # the slot the next cycle runs in, either clock (a late wake-up skips some): the dead man's count
         self.skipped = 0  # slots skipped because the loop was that far behind
         self._stamp = -1  # the slot of the last samples pushed into the rings (a stop's cycles follow it)
+        self.late_syncs = 0  # cycles whose SYNC went out a slot or more after the cycle took its slot (_slip)
+        self._pacer: Pacer | None = None
+        self._k = 0  # wall clock: the pacer's slot of the cycle under way (a late SYNC moves it on: _slip)
+        self._woke_missed = False  # the pacer counted the cycle under way as missed (it woke over half a period late)
+        self._sync_armed = False  # the cycle's first SYNC is still to go out (_slip)
         self.gc_runs = 0
         self.gc_worst = 0.0
         self.granted: dict[str, str] = {}
@@ -324,13 +329,14 @@ class ServoLoop:
             if self._elapsed > 1:  # woke late: the axes' next samples belong to the slot this cycle runs in
                 for rt in self._rts:
                     rt.ch.axis.skip(self._elapsed - 1)
-            s = self._stamp = self.slot  # the rings record the slot: a capture's time (capture.Ring)
+            self._stamp = self.slot  # the rings record the slot: a capture's time (capture.Ring)
+            self._sync_armed = self._pacer is not None
             try:
                 for rt in self._rts:
                     if rt.state is AxisState.SERVO:
-                        self._servo(rt, s)
+                        self._servo(rt)
                     else:
-                        self._idle(rt, s)
+                        self._idle(rt)
             except CycleFault as exc:
                 self._fault(exc.fault, exc.stop)
             except AxisError as exc:  # a write that failed (bus error): a fault like any other
@@ -348,11 +354,12 @@ class ServoLoop:
         text = str(exc)
         return next((rt.name for rt in self._rts if text.startswith(f"axis {rt.name}:")), self._rts[0].name)
 
-    def _servo(self, rt: AxisRuntime, s: int) -> None:
-        """One cycle of an enabled axis (slot ``s``): sample -> reference -> control -> record -> limits -> write."""
+    def _servo(self, rt: AxisRuntime) -> None:
+        """One cycle of an enabled axis: sample -> reference -> control -> record -> limits -> write."""
         ch = rt.ch
         rt.servo_k += 1
         fb = sample_axis(ch, rt.servo_k)
+        s = self._stamp  # after the sample: a SYNC later than its slot moved the cycle on (_slip)
         run = rt.run
         if self._elapsed > 1:  # the loop resynchronised: the drive held the last setpoint that long
             ch.last_position = None  # no plausibility check across the gap: it restarts from this sample
@@ -393,8 +400,8 @@ class ServoLoop:
         if rt.handle is not None:
             self._progress(rt)
 
-    def _idle(self, rt: AxisRuntime, s: int) -> None:
-        """One cycle of an axis that is not servoing (slot ``s``): sample, zero effort; take it up once enabled."""
+    def _idle(self, rt: AxisRuntime) -> None:
+        """One cycle of an axis that is not servoing: sample, zero effort; take it up once enabled."""
         ax = rt.ch.axis
         try:
             fb = ax.read()
@@ -410,6 +417,7 @@ class ServoLoop:
                 rt.enable_failed = str(exc)
             return
         ax.write(0.0)
+        s = self._stamp  # after the sample: a SYNC later than its slot moved the cycle on (_slip)
         pos = fb.position - rt.offset
         rt.position, rt.velocity, rt.reference, rt.effort, rt.following_error = pos, fb.velocity, pos, 0.0, 0.0
         rt.ring.push(s, pos, pos, 0.0, fb.velocity, ax.torque_actual, ax.statusword)
@@ -585,30 +593,33 @@ class ServoLoop:
             self._cpu_mark = (clk, time.clock_gettime(clk), time.perf_counter())
             # in-process, the emulated drives run on this clock too, as across processes: a loop later than
             # the drive's RPDO deadline is caught by the drive (controllers/runtime/pacing.pace_axes)
-            pace_axes(self._channels, pacer.now)
+            self._pacer = pacer
+            pace_axes(self._channels, pacer.now, self._slip)
             paced = True
             k = 0
             latency, recent = self.latency, self.recent
             while not self._closing:
                 late = pacer.wait(k)
+                self._woke_missed = late > 0.5 * self.dt
                 latency.add(late)
                 recent.add(late)
                 t = now()
                 last = self._last_cycle_t
                 if last is not None and t - last > self._first_bound:
                     self._on_stall(t - last)
-                behind = int((t - pacer.t0) / self.dt) - k
+                behind = slots_behind(t - pacer.t0, self.dt, k)
                 if behind > 0:  # a slot or more lost: resynchronise to the next one, no burst of stale cycles
                     # this cycle takes the slot nearest to the time it samples at: the drives held the last
                     # setpoint since the previous SYNC, and the references and the controllers skip as many
-                    behind = max(behind, round((t - pacer.t0) / self.dt) - k)
                     pacer.missed += behind - 1  # slots k+1 .. now-1 (the pacer counted slot k itself)
                     self.skipped += behind  # slots k .. now-1 get no cycle of their own: this one is slot now
                     k += behind
+                    self._woke_missed = False  # counted
                 self._elapsed = behind + 1
+                self._k = k
                 self._cycle_all()
                 self._last_cycle_t = now()
-                k += 1
+                k = self._k + 1
                 self.slots = k
                 self.missed, self.worst_late = pacer.missed, pacer.worst_late
                 if self.gc_control and k % 100 == 0:
@@ -619,6 +630,29 @@ class ServoLoop:
         finally:
             if paced:
                 pace_axes(self._channels, None)
+            self._pacer = None
+
+    def _slip(self) -> int:
+        """Just before the cycle's first SYNC goes out (SyncClock.tick): the slots the pacer's clock moved on since
+        the cycle took its slot. The host may stop the loop between the two; the drive samples at the SYNC, so
+        the cycle is moved to the slot it samples in, as a late wake-up is, and the SYNC counts the slots between
+        (docs/timing.md, "A SYNC later than its slot"). A stop's later SYNCs in the same cycle are not asked."""
+        pacer = self._pacer
+        if not self._sync_armed or pacer is None:
+            return 0
+        self._sync_armed = False
+        extra = slots_behind(self._now() - pacer.t0, self.dt, self._k)
+        if extra <= 0:
+            return 0
+        pacer.missed += extra - 1 if self._woke_missed else extra  # slots k .. k+extra-1 got no cycle of their own
+        self._woke_missed = False
+        self.skipped += extra
+        self.late_syncs += 1
+        self._k += extra
+        self._elapsed += extra
+        self.slot += extra
+        self._stamp = self.slot
+        return extra
 
     def _setup_thread(self) -> None:
         self.granted.update(self._host.take(self.dt, gil_switch=self.gil_switch, gc_control=self.gc_control,
@@ -723,6 +757,7 @@ class ServoLoop:
             "missed_deadlines": self.missed,  # cycles that started over half a period late, skipped ones included
             "missed_fraction": self.missed / n,  # of the cycle slots since the start
             "skipped_cycles": self.skipped,
+            "late_syncs": self.late_syncs,  # of those, cycles whose SYNC went out a slot or more after their slot
             "worst_late_ms": self.worst_late * 1e3,
             "stalls": self.stalls,
             "stall_bound_ms": self._first_bound * 1e3,

@@ -66,8 +66,20 @@ class Pacer:
         return self._now()
 
 
-def pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None) -> None:
-    """Tell each axis that a paced run starts on ``wall`` (None: it ended); an axis without drives of their
-    own clock in this process (SimAxis) has nothing to do (driver/axis.py)."""
+def slots_behind(since_t0: float, dt: float, k: int) -> int:
+    """How many slots past slot ``k`` a time ``since_t0`` (s after the pacer's t0) lies: 0 within slot ``k``'s
+    period; once a whole slot or more, the slot nearest it (what a drive samples then belongs to that one)."""
+    behind = int(since_t0 / dt) - k
+    if behind > 0:
+        behind = max(behind, round(since_t0 / dt) - k)
+    return behind
+
+
+def pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None,
+              slip: Callable[[], int] | None = None) -> None:
+    """Tell each axis that a paced run starts on ``wall`` (None: it ended), and who says, just before a cycle's
+    SYNC goes out, how many slots it slipped since the cycle took its slot (``slip``: ServoLoop); an axis
+    without drives of their own clock in this process (SimAxis) has nothing to do (driver/axis.py)."""
     for ch in channels:
         ch.axis.pace(wall)
+        ch.axis.watch_sync(slip if wall is not None else None)

@@ -61,6 +61,7 @@ class DriveClock:
             self._catch_up(data[0])
         self._syncs_since_rpdo += 1
         self._synced = True  # serve() re-anchors the wall clock here
+        self._sync_at = self._last_serve  # in-process and paced: the wall time just before this delivery
         self._cycle(sync=True)
 
     def _catch_up(self, counter: int) -> None:
@@ -226,8 +227,15 @@ class DriveClock:
         away, self._last_serve = now - self._last_serve, now
         if self._synced:
             # SYNC-locked: the drive's time is the SYNCs' (a slow master is not a dead one)
-            self._synced, self._anchor, self._free_running = False, now, False
-            return
+            self._synced, self._free_running = False, False
+            if self._window_ms is None or self._window_ms == math.inf:
+                self._anchor = now
+                return
+            # in-process and paced (wall_clock: served just before each delivery too), the lock holds from the
+            # SYNC's arrival: a host that stopped this process inside the delivery, after the SYNC's cycle ran,
+            # let that time pass on a real drive too, so the gap below runs it (else the plant stood still and the
+            # RPDO deadline never saw it: docs/timing.md, "A host stop inside a SYNC's delivery")
+            self._anchor = self._sync_at
         gap_ms = (now - self._anchor) * 1000.0
         if not self._free_running:
             window = self.sync_loss_ms if self._window_ms is None else self._window_ms

@@ -158,6 +158,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
         self._synced = False  # a SYNC came since the last serve()
         self._anchor = 0.0  # wall time (s) matching the drive's clock when served
         self._last_serve = 0.0  # wall time (s) of the last serve(): a long absence is this process's own
+        self._sync_at = 0.0  # the last serve() before the last SYNC's delivery (in-process and paced: its arrival)
         self._free_running = True  # served and not SYNC-locked (no SYNC since power-on or reset)
         self._window_ms: float | None = None  # the SYNC-loss window of a paced in-process run (wall_clock)
         self.master_clock = CLOCK_OWN  # what the master said its clock is (0x5FFF:2, driver/emulator_clock.py)

@@ -170,6 +170,43 @@ def test_after_a_late_wake_up_a_moving_axis_finds_its_reference_where_the_time_i
         m.close()
 
 
+def test_a_host_stop_inside_a_sync_s_delivery_runs_on_the_in_process_drive_and_its_deadline_fires(tmp_path):
+    """An in-process soak (issue 39 point 3): the host stopped the VM for 37 ms while the SYNC was being delivered to
+    the emulated drives, after they had run its cycle. The drive took the whole 37 ms for SYNC-locked time (it
+    anchored its clock after the delivery): its plant stood still and its RPDO deadline (17 ms) never fired, and z
+    faulted on its following error instead (1.43 mm, the reference 37 slots on, the axis one cycle on). A real
+    drive runs that time: the drive now counts from the SYNC's arrival, so the gap runs on its plant and its
+    RPDO deadline stops it."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall)
+    clock, drive = seen["clock"], m.drives["x"]
+    lockstep = m.axes["x"].network.lockstep
+    deliver, at = lockstep._deliver, {"slot": None}
+
+    def stopped_inside_the_sync():
+        deliver()
+        if at["slot"] is not None and loop.slots >= at["slot"] and drive._synced:
+            at["slot"] = None
+            seen["steps"] = drive.drive.free_steps
+            clock.t += 0.037  # the SYNC's cycle ran; the host stops the process before the delivery ends
+
+    try:
+        rt = loop.axes["x"]
+        loop.submit(lambda: rt.traj.move_to(0.08, 0.05))
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 600, 30.0)
+        lockstep._deliver = stopped_inside_the_sync
+        at["slot"] = loop.slots + 50
+        assert loop.run_until(lambda: loop.faults, 30.0)
+        f = loop.faults[0]
+        assert "0x8250" in f.detail, f.detail  # the drive's RPDO deadline, not the master's following error
+        assert drive.drive.free_steps - seen["steps"] >= 17  # the gap ran on the drive's plant
+        assert f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault")
+    finally:
+        loop.close()
+        m.close()
+
+
 def test_a_stall_past_the_deadline_is_caught_within_the_deadline_plus_two_cycles(tmp_path):
     """The process stopped for 0.5 s (as SIGSTOP does): when it resumes, the axis faults at once, on
     drivectl's own clock, and stops, the end state reported by the drive."""

@@ -178,6 +178,16 @@ class DriveModel:
                 new = PowerState.SWITCHED_ON if power is PowerState.READY_TO_SWITCH_ON else power
             self.power = new
 
+    def disable_voltage(self, code: int) -> None:
+        """Communication lost with 0x6007 = 2 or 3 (disable voltage, quick stop): zero torque now and Switch On
+        Disabled, 0x603F = code. A brake engages first, as on a disable command (plant_emulator/brake.py): the
+        power stage holds the axis at standstill meanwhile, so a vertical axis does not fall."""
+        self.error_code = code
+        before, self.power = self.power, PowerState.SWITCH_ON_DISABLED
+        if self.brake is not None:
+            self.power = self.brake.gate(before, self.power)
+        self.applied = 0.0
+
     def fault(self, code: int) -> None:
         """Enter Fault Reaction Active (zero torque now), Fault at the next SYNC; 0x603F = code."""
         self.error_code = code

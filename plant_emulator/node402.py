@@ -373,9 +373,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
             self._errors.add(code)
             self.fault(code)
         elif self._abort_option in (2, 3) and running:
-            d.power = cia402.PowerState.SWITCH_ON_DISABLED
-            d.applied = 0.0
-            d.error_code = code
+            d.disable_voltage(code)
             self._errors.add(code)
             self._emcy(code)
 

@@ -75,7 +75,7 @@ def test_enable_judges_the_recent_lateness_one_hiccup_long_ago_is_forgotten():
     assert judge(0.006, 1e-3, rec.percentiles_ms())[0] == "ok"
 
 
-def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None):
+def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None, axis="x"):
     """x on the embedded machine under the wall-clock loop, its clock simulated: the pacer's sleeps pass
     simulated time, and ``stall["s"]`` is added to the next one (the process stopped while it slept).
     ``hold``: {"at": slot, "held": Event, "go": Event}: the loop's thread stops in its first sleep from that
@@ -88,8 +88,8 @@ def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None):
     from drivectl.machine.config import load_config
 
     cfg = load_config(None)
-    ac = cfg.axis("x")
-    m = open_machine(cfg, ["x"])
+    ac = cfg.axis(axis)
+    m = open_machine(cfg, [axis])
     clock = SimWallClock(100.0)
     seen = {}
 
@@ -103,16 +103,17 @@ def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None):
             stall["s"] = 0.5  # the process stopped here (as SIGSTOP does)
         extra, stall["s"] = stall["s"], 0.0
         if extra:
-            seen["servo_k"] = loop.axes["x"].servo_k
+            seen["servo_k"] = loop.axes[axis].servo_k
         clock.t += s + extra
 
-    ch = Channel(m.axes["x"], make_controller("pid-dob", cfg.cycle_s, {}, plant=m.specs["x"], axis="x"), None,
+    law = ("pid-dob", {}) if axis == "x" else (ac.controller, dict(ac.controller_settings))
+    ch = Channel(m.axes[axis], make_controller(law[0], cfg.cycle_s, law[1], plant=m.specs[axis], axis=axis), None,
                  ac.limits)
-    loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={"x": m.deadlines["x"].seconds}, now=clock.now,
+    loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={axis: m.deadlines[axis].seconds}, now=clock.now,
                      sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False, ring_s=ring_s)
     seen["clock"] = clock
     loop.start()
-    rt = loop.axes["x"]
+    rt = loop.axes[axis]
     rt.state = AxisState.ENABLING
     loop.submit(ch.axis.enable)
     if when is None:
@@ -202,6 +203,32 @@ def test_a_host_stop_inside_a_sync_s_delivery_runs_on_the_in_process_drive_and_i
         assert "0x8250" in f.detail, f.detail  # the drive's RPDO deadline, not the master's following error
         assert drive.drive.free_steps - seen["steps"] >= 17  # the gap ran on the drive's plant
         assert f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault")
+    finally:
+        loop.close()
+        m.close()
+
+
+def test_a_drive_whose_rpdo_deadline_fires_engages_its_brake_and_z_stands(tmp_path):
+    """An in-process soak (issue 39 point 3): the host stopped the VM for 102 ms while z held. The emulated drive's
+    RPDO deadline fired (0x6007 = 2: disable voltage) and dropped the power stage without engaging z's brake, so z
+    slid 20-40 mm while disabled, and its re-enable faulted on the soft limit. A drive with a brake engages it
+    before the power stage goes off, whatever took it out of Operation Enabled (plant_emulator/brake.py)."""
+    stall = {"s": 0.0}
+    m, loop, seen = _sim_loop(tmp_path, stall, axis="z")
+    drive, rt = m.drives["z"].drive, loop.axes["z"]
+    try:
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 50, 30.0)
+        held = drive.position
+        stall["s"] = 0.102
+        assert loop.run_until(lambda: loop.faults, 30.0)
+        assert drive.error_code == 0x8250 and drive.free_steps >= 17  # the drive's deadline fired in the gap
+        start = loop.slots
+        assert loop.run_until(lambda: loop.slots > start + 2000, 30.0)
+        assert drive.brake.engaged and drive.power is cia402.PowerState.SWITCH_ON_DISABLED
+        assert abs(drive.position - held) < 20e-6, drive.position - held  # was 20-40 mm
+        assert loop.faults[0].safe_state["z"].split(" (")[0] == "Switch On Disabled"
+        assert rt.ch.axis.power is cia402.PowerState.SWITCH_ON_DISABLED
     finally:
         loop.close()
         m.close()

@@ -82,6 +82,11 @@ class HoldingBrake:
             self._count = 0  # a release asked for and withdrawn starts again next time
         return after
 
+    def drop(self) -> None:
+        """The drive restarted (a reset, a brown-out): the coil loses power and the brake, spring-applied, engages
+        at once, without the standstill control (the drive that would run it is booting)."""
+        self.engaged, self.hold, self.target, self._count = True, None, None, 0
+
     def _holding_state(self) -> PowerState:
         t = self.target
         if t in (PowerState.QUICK_STOP_ACTIVE, PowerState.FAULT_REACTION_ACTIVE):

@@ -188,6 +188,13 @@ class DriveModel:
             self.power = self.brake.gate(before, self.power)
         self.applied = 0.0
 
+    def restart(self) -> None:
+        """A reset of the drive (NMT reset node, a spontaneous one): the power stage restarts in Switch On
+        Disabled with no error, and the brake engages at once (:meth:`HoldingBrake.drop`)."""
+        self.power, self.applied, self.error_code = PowerState.SWITCH_ON_DISABLED, 0.0, 0
+        if self.brake is not None:
+            self.brake.drop()
+
     def fault(self, code: int) -> None:
         """Enter Fault Reaction Active (zero torque now), Fault at the next SYNC; 0x603F = code."""
         self.error_code = code

@@ -266,8 +266,7 @@ class EmulatedDrive(DriveObjects, DrivePdos, DriveClock):
             self._set_mode(self._od_default(cia402.MODES_OF_OPERATION, absent=0))
             self.controlword = 0
             self.setpoint = 0  # per mille of the rated effort, as received
-            d = self.drive
-            d.power, d.applied, d.error_code = cia402.PowerState.SWITCH_ON_DISABLED, 0.0, 0
+            self.drive.restart()
             self.internal_limit = False
             self._fault_reported = False
         self._load_mapping()

@@ -42,9 +42,11 @@ def test_a_never_enabled_z_stands_with_its_brake_and_swings_without(tmp_path, si
         assert _span_um(m, m.axes["z"], 2.5) > 1000.0  # the free table: millimetres
 
 
-@pytest.mark.parametrize("how", ["disable", "quick-stop", "fault"])
+@pytest.mark.parametrize("how", ["disable", "quick-stop", "fault", "reset"])
 def test_a_disabled_quick_stopped_or_faulted_z_stands(how):
-    faults = ["emcy-fault@1.5"] if how == "fault" else None  # s from the first SYNC
+    """A reset of the drive (a brown-out, here injected) restarts its power stage: the brake, spring-applied,
+    engages at once (was: the power stage off, the brake left open, z free)."""
+    faults = {"fault": ["emcy-fault@1.5"], "reset": ["node-reset@1.5"]}.get(how)  # s from the first SYNC
     with drivectl.connect(axes=["z"], faults=faults, fault_dir=None) as m:
         z = m.axes["z"]
         z.enable()
@@ -59,6 +61,9 @@ def test_a_disabled_quick_stopped_or_faulted_z_stands(how):
         assert (z.power is PowerState.FAULT) == (how == "fault")
         assert abs(z.position - held) < STANDS_UM * 1e-6
         assert _span_um(m, z, 2.5) < STANDS_UM
+        if how == "reset":  # a booting drive sends no PDO: where the master saw z last is not where z is
+            drive = m.hardware.drives["z"].drive
+            assert drive.brake.engaged and abs(drive.position - held) < STANDS_UM * 1e-6, drive.position - held
 
 
 def _drive(release_ms: float = 5.0, engage_ms: float = 3.0) -> DriveModel:

@@ -184,8 +184,10 @@ class DriveModel:
         power stage holds the axis at standstill meanwhile, so a vertical axis does not fall."""
         self.error_code = code
         before, self.power = self.power, PowerState.SWITCH_ON_DISABLED
-        if self.brake is not None:
-            self.power = self.brake.gate(before, self.power)
+        if self.brake is not None and before is PowerState.OPERATION_ENABLED:
+            # the stop reaction reports Quick Stop Active while the brake engages (not Operation Enabled, as a
+            # disable command's does): the master's safe stop sees a stopping drive and does not escalate to NMT
+            self.power = self.brake.gate(before, PowerState.QUICK_STOP_ACTIVE)
         self.applied = 0.0
 
     def restart(self) -> None:

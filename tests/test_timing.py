@@ -213,6 +213,8 @@ def test_a_drive_whose_rpdo_deadline_fires_engages_its_brake_and_z_stands(tmp_pa
     RPDO deadline fired (0x6007 = 2: disable voltage) and dropped the power stage without engaging z's brake, so z
     slid 20-40 mm while disabled, and its re-enable faulted on the soft limit. A drive with a brake engages it
     before the power stage goes off, whatever took it out of Operation Enabled (plant_emulator/brake.py)."""
+    from drivectl.controllers.runtime.loop import AxisState
+
     stall = {"s": 0.0}
     m, loop, seen = _sim_loop(tmp_path, stall, axis="z")
     drive, rt = m.drives["z"].drive, loop.axes["z"]
@@ -220,15 +222,21 @@ def test_a_drive_whose_rpdo_deadline_fires_engages_its_brake_and_z_stands(tmp_pa
         start = loop.slots
         assert loop.run_until(lambda: loop.slots > start + 50, 30.0)
         held = drive.position
-        stall["s"] = 0.102
+        stall["s"] = 0.030  # the deadline fires 17 ms in, the brake's 20 ms run past the gap: the master sees them
         assert loop.run_until(lambda: loop.faults, 30.0)
         assert drive.error_code == 0x8250 and drive.free_steps >= 17  # the drive's deadline fired in the gap
         start = loop.slots
         assert loop.run_until(lambda: loop.slots > start + 2000, 30.0)
         assert drive.brake.engaged and drive.power is cia402.PowerState.SWITCH_ON_DISABLED
         assert abs(drive.position - held) < 20e-6, drive.position - held  # was 20-40 mm
-        assert loop.faults[0].safe_state["z"].split(" (")[0] == "Switch On Disabled"
+        # reported by TPDO, no escalation: the drive said Quick Stop Active while its brake engaged (a drive that said
+        # Operation Enabled then was put in NMT Stopped by the master's safe stop, and z could not be enabled again)
+        assert loop.faults[0].safe_state["z"] == "Switch On Disabled", loop.faults[0].safe_state
         assert rt.ch.axis.power is cia402.PowerState.SWITCH_ON_DISABLED
+        rt.state, rt.enable_failed = AxisState.ENABLING, ""
+        loop.submit(rt.ch.axis.enable)
+        assert loop.run_until(lambda: rt.state is not AxisState.ENABLING, 30.0)
+        assert rt.state is AxisState.SERVO, rt.enable_failed
     finally:
         loop.close()
         m.close()

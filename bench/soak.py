@@ -335,7 +335,10 @@ def cycle_line(r: dict) -> str:
         return f"cycle {r['_cycle_s'] * 1e3:g} ms (--cycle-s)"
     lat = d["latency_ms"]
     return (f"cycle {r['_cycle_s'] * 1e3:g} ms, recommended by drivectl doctor ({d['_seconds']:g} s probe at 1 ms "
-            f"beside the hogs: verdict {d['verdict']}, p99.99 {lat['p99_99']:.2f} ms, max {lat['max']:.2f} ms)")
+            f"beside the hogs: verdict {d['verdict']}, p99.99 {lat['p99_99']:.2f} ms, max {lat['max']:.2f} ms, "
+            f"{d.get('late_share', 0.0) * 100:.2f} % of its cycles over half a cycle late, "
+            f"{d.get('missed_fraction', 0.0) * 100:.2f} % of its slots missed, the loop's thread "
+            f"{(d.get('cpu_share') or 0.0) * 100:.0f} % of a CPU)")
 
 
 def loop_line(st: dict) -> str:
@@ -343,7 +346,8 @@ def loop_line(st: dict) -> str:
     return ("loop: lateness " + ", ".join(f"{q} {v:.2f}" for q, v in st["latency_ms"].items()) + " ms; skipped "
             f"{st['skipped_cycles']} slots ({st.get('late_syncs', 0)} at a SYNC later than its slot); "
             f"stalls {st['stalls']}; collections {st['gc_collections']}, worst "
-            f"{st['gc_worst_ms']:.2f} ms; deadlines " + ", ".join(f"{n} {v:g}" for n, v in st["deadline_ms"].items())
+            f"{st['gc_worst_ms']:.2f} ms; the loop's thread {(st.get('cpu_share') or 0.0) * 100:.0f} % of a CPU; "
+            "deadlines " + ", ".join(f"{n} {v:g}" for n, v in st["deadline_ms"].items())
             + " ms")
 
 

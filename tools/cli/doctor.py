@@ -34,7 +34,7 @@ def add_doctor_parser(sub: Any) -> None:
     d.add_argument("--seconds", type=float, default=10.0, help="how long the timing probe runs (default 10)")
     d.add_argument("--axis", action="append", metavar="NAME", help="the axes to check (default: all)")
     d.add_argument("--json", action="store_true", help="one JSON object: latency_ms, deadline_ms, cycle_s, "
-                   "granted, verdict")
+                   "recommended_cycle_s, granted, verdict, late_share, cpu_share, missed_fraction")
     d.add_argument("--out", metavar="PNG", default="doctor-latency.png",
                    help="the lateness histogram's plot (default doctor-latency.png; not with --json)")
     d.add_argument("--cpu", type=int, default=None, help="pin the loop's thread to this CPU")
@@ -181,14 +181,15 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     status, deadlines = res["status"], res["deadlines"]
     lat = status["latency_ms"]
     verdict, per = assess(deadlines, cfg.cycle_s, lat)
-    cycle, cycle_why = recommend_cycle(cfg.cycle_s, status.get("cpu_share"),
-                                       res["latency"].share_over(0.5 * cfg.cycle_s))
+    late_share = res["latency"].share_over(0.5 * cfg.cycle_s)
+    cycle, cycle_why = recommend_cycle(cfg.cycle_s, status.get("cpu_share"), late_share)
     if cycle > cfg.cycle_s and verdict == "ok":
         verdict = "warn"  # the deadlines hold, but the host does not keep this cycle's slots (timing.py)
     if args.json:
         print(json.dumps({"latency_ms": lat, "deadline_ms": {n: d.ms for n, d in deadlines.items()},
                           "cycle_s": cfg.cycle_s, "recommended_cycle_s": cycle, "granted": status["granted"],
-                          "verdict": verdict}))
+                          "verdict": verdict, "late_share": late_share, "cpu_share": status.get("cpu_share"),
+                          "missed_fraction": status["missed_fraction"]}))
         return VERDICT_EXIT[verdict]
     holds = []
     if cycle > cfg.cycle_s:  # a gain tuned at one cycle may not hold at another: simulated, said beside it
@@ -210,6 +211,9 @@ def cmd_doctor(args: argparse.Namespace) -> int:
           f" (cycle_s = {cycle!r} in the configuration; {cfg.cycle_s * 1e3:g} ms is configured)") + f": {cycle_why}")
     for h in holds:
         print(f"          axis {h.axis}: {h.text()}")
+    if any(v == "refuse" for v, _ in per.values()):  # the cycle is about slots; a refusal is about the deadlines
+        print("          no cycle mends the refusal below: a longer one leaves the host less time before each "
+              "deadline (deadline - cycle)")
     if steal0 and steal1:  # the hypervisor's share of the lateness (host.py): no setting in this guest helps it
         print("steal     " + ", ".join(f"{c} {(steal1[c] - steal0.get(c, steal1[c])) * 1e3:.0f} ms" for c in steal1)
               + " taken by the hypervisor during the probe (on a virtual machine: its host ran something else)")

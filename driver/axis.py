@@ -189,9 +189,10 @@ class Axis:
         """A run paced on the wall clock ``wall`` starts (None: it ended); nothing to tell without drives
         of their own clock in this process."""
 
-    def watch_sync(self, slip: Callable[[], int] | None) -> None:
-        """While a paced run lasts: ``slip()``, called just before the cycle's SYNC goes out, returns the slots the
-        loop's clock moved on since the cycle took its slot; the SYNC then counts them as skipped (docs/timing.md,
+    def watch_sync(self, slip: Callable[[float | None], int] | None) -> None:
+        """While a paced run lasts: ``slip(now)``, called just before the cycle's SYNC goes out (in-process with the
+        wall time of its delivery; None: now), returns the slots the loop's clock moved on since the cycle took its
+        slot; the SYNC then counts them as skipped (docs/timing.md,
         "A SYNC later than its slot"). Nothing to do without a SYNC."""
 
     def skip(self, slots: int) -> None:

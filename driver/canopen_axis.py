@@ -615,7 +615,7 @@ class CanopenAxis(AxisBoot, AxisStop, Axis):
         if on and not clock.slot_vetoed:
             clock.slot_counter = True
 
-    def watch_sync(self, slip: Callable[[], int] | None) -> None:
+    def watch_sync(self, slip: Callable[[float | None], int] | None) -> None:
         self.clock.slip = slip  # the bus's axes share the clock, each says the same
 
     def skip(self, slots: int) -> None:

@@ -152,6 +152,9 @@ class Lockstep:
         self.wall_clocks: list[Callable[[float | None], None]] = []
         self._wall: Callable[[], float] | None = None
         self._links: dict[str, LockstepLink] = {}
+        #: asked once with the wall time the devices get just before the next delivery (a paced SYNC's slip:
+        #: driver/sync_clock.SyncClock.tick), then cleared
+        self.at_delivery: Callable[[float], None] | None = None
 
     def bus(self, channel: str) -> LockstepBus:
         """A new end of this lockstep's in-process bus ``channel`` (driver/lockstep_bus.py): the ends
@@ -190,7 +193,10 @@ class Lockstep:
         try:
             wall = self._wall
             if wall is not None:  # paced: the devices' clocks up to this frame, then to its arrival
-                self._serve_wall(wall)
+                now = self._serve_wall(wall)
+                hook, self.at_delivery = self.at_delivery, None
+                if hook is not None:
+                    hook(now)
                 self._deliver()
                 self._serve_wall(wall)
             self._deliver()
@@ -207,10 +213,16 @@ class Lockstep:
                 if (inbox is None or inbox) and net.pump():
                     busy = True
 
-    def _serve_wall(self, wall: Callable[[], float]) -> None:
+    def _serve_wall(self, wall: Callable[[], float]) -> float:
         now = wall()
         for clock in self.wall_clocks:
             clock(now)
+        return now
+
+    @property
+    def paced(self) -> bool:
+        """A run paced on the wall clock is under way (:meth:`pace`)."""
+        return self._wall is not None
 
 
 #: canopen's NodeScanner records the node of these services (canopen/network.py NodeScanner.SERVICES)

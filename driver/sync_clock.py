@@ -31,9 +31,10 @@ class SyncClock:
         #: when the cycle's SYNC went (the pacer's clock; paced runs across processes): the TPDO waits end from it
         self.ticked_at = 0.0
         self._skipped = 0  # slots the loop skipped before this tick (it woke late): the cycle counts them
-        #: a paced run's loop: the slots it slipped since its cycle took its slot, asked just before the SYNC goes
-        #: out (the host may stop the loop between the two; the drive samples at the SYNC, docs/timing.md)
-        self.slip: Callable[[], int] | None = None
+        #: a paced run's loop: the slots it slipped since its cycle took its slot, at the wall time given (None: now),
+        #: asked just before the SYNC goes out, in-process at its delivery (the host may stop the loop between the
+        #: two; the drive samples at the SYNC, docs/timing.md "A SYNC later than its slot")
+        self.slip: Callable[[float | None], int] | None = None
         #: SYNCs on the bus since the clock began, up to this cycle's (a skipped slot sends none: ``cycle`` counts
         #: slots, this counts frames); an axis counts its answers against it (CanopenAxis, docs/timing.md)
         self.syncs = 0
@@ -53,14 +54,26 @@ class SyncClock:
     def tick(self) -> None:
         prev, skipped, self._skipped = self.cycle, self._skipped, 0
         if self.periodic is None:
-            if self.slip is not None:
-                skipped += self.slip()
+            lockstep = getattr(self.network, "lockstep", None)
+            at_delivery = self.slip is not None and lockstep is not None and lockstep.paced
+            if self.slip is not None and not at_delivery:
+                skipped += self.slip(None)
             self.cycle += 1 + skipped  # first: what answers this SYNC belongs to the new cycle
             self.syncs += 1
             if skipped:
                 self.late_sync = self.syncs
-            self.network.send_message(self.cob_id, bytes((self.cycle % SLOT_COUNTER_SPAN + 1,))
-                                      if self.slot_counter else b"")
+            if at_delivery:
+                # in-process the drives sample at the wall time the lockstep network gives them just before the
+                # delivery: the slip is judged at that time, so a stop inside the send is counted too (no counter
+                # byte in-process: the frame does not depend on it)
+                lockstep.at_delivery = self._slipped_at
+            try:
+                self.network.send_message(self.cob_id, bytes((self.cycle % SLOT_COUNTER_SPAN + 1,))
+                                          if self.slot_counter else b"")
+            finally:
+                if at_delivery and lockstep.at_delivery is not None:  # not delivered here (a callback's send)
+                    lockstep.at_delivery = None
+                    self._slipped_at(None)
         else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
             seen = self.periodic.wait_beyond(self.cycle - self._periodic_base)
             if self._periodic_base + seen == prev:
@@ -75,6 +88,12 @@ class SyncClock:
         hb = self.heartbeat_cycles
         if hb and (self.cycle - 1) // hb > (prev - 1) // hb:
             self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
+
+    def _slipped_at(self, now: float | None) -> None:
+        extra = self.slip(now)
+        if extra:
+            self.cycle += extra
+            self.late_sync = self.syncs
 
     def start_periodic(self, dt: float) -> None:
         """The transport sends the SYNC from now on, where it can off the Python thread (else the loop

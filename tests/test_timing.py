@@ -19,6 +19,7 @@ from drivectl.controllers.runtime.timing import (
     physics_deadline,
 )
 from drivectl.driver import cia402
+from drivectl.driver.cia301 import SYNC_COB_ID
 
 
 def test_the_deadline_is_the_time_max_effort_takes_to_use_half_the_window():
@@ -824,13 +825,19 @@ def _late_during_a_move(tmp_path, where: str) -> tuple[dict, np.ndarray, np.ndar
     stall = {"s": 0.0}
     m, loop, seen = _sim_loop(tmp_path, stall)
     clock, ax = seen["clock"], m.axes["x"]
-    read, at = ax.read, {"slot": None}
+    read, send, at = ax.read, ax.network.send_message, {"slot": None}
 
     def held_off_read():
         if at["slot"] is not None and loop.slots >= at["slot"]:
             at["slot"] = None
             clock.t += 0.012  # after the slot's decision, before the SYNC
         return read()
+
+    def held_off_send(cob_id, data, *args, **kwargs):
+        if cob_id == SYNC_COB_ID and at["slot"] is not None and loop.slots >= at["slot"]:
+            at["slot"] = None
+            clock.t += 0.012  # inside the SYNC's send: after the loop's last look at the clock, before the delivery
+        return send(cob_id, data, *args, **kwargs)
 
     try:
         rt = loop.axes["x"]
@@ -839,6 +846,9 @@ def _late_during_a_move(tmp_path, where: str) -> tuple[dict, np.ndarray, np.ndar
         assert loop.run_until(lambda: loop.slots > start + 600, 30.0)
         if where == "sync":
             ax.read = held_off_read
+            at["slot"] = loop.slots + 50
+        elif where == "send":
+            ax.network.send_message = held_off_send
             at["slot"] = loop.slots + 50
         else:
             stall["s"] = 0.012
@@ -871,3 +881,20 @@ def test_a_sync_sent_late_after_its_slot_was_taken_is_a_late_cycle_like_a_late_w
         i = int(np.argmax(np.diff(slots)))
         assert np.abs(fe[i + 1:i + 51]).max() < 1e-6
     assert np.abs(fe_late).max() == pytest.approx(np.abs(fe_woke).max(), rel=0.05)
+
+
+def test_a_host_stop_inside_the_sync_s_send_is_a_late_cycle_like_a_late_wake_up(tmp_path):
+    """Issue 39 point 3 (an in-process soak: "axis z: position jumped +0.516 mm beyond its motion", no slot
+    skipped, one sample about 8 cycles of z's 70 mm/s past the one before). The loop looks at its clock just
+    before the SYNC goes out (ServoLoop._slip); the host stopped it after that look, inside the send, before the
+    lockstep network delivered the SYNC. The in-process drive ran the gap on its own clock and sampled 8 ms on,
+    while the cycle believed itself on time. In-process the slip is judged where the drives sample, at the wall
+    time the lockstep network gives them just before the SYNC's delivery (docs/timing.md, "A SYNC later than its
+    slot"): the cycle moves to that slot, as after a late wake-up."""
+    late, fe_late, slots_late, faults = _late_during_a_move(tmp_path / "send", "send")
+    assert not faults, faults[0].detail
+    assert late["late_syncs"] == 1 and late["skipped_cycles"] == late["missed_deadlines"] == 12
+    gap = np.diff(slots_late)
+    assert gap.max() == 13 and (gap == 13).sum() == 1
+    i = int(np.argmax(gap))
+    assert np.abs(fe_late[i + 1:i + 51]).max() < 1e-6  # tracked through, as through a late wake-up

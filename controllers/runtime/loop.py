@@ -632,16 +632,17 @@ class ServoLoop:
                 pace_axes(self._channels, None)
             self._pacer = None
 
-    def _slip(self) -> int:
-        """Just before the cycle's first SYNC goes out (SyncClock.tick): the slots the pacer's clock moved on since
-        the cycle took its slot. The host may stop the loop between the two; the drive samples at the SYNC, so
-        the cycle is moved to the slot it samples in, as a late wake-up is, and the SYNC counts the slots between
-        (docs/timing.md, "A SYNC later than its slot"). A stop's later SYNCs in the same cycle are not asked."""
+    def _slip(self, now: float | None = None) -> int:
+        """Just before the cycle's first SYNC goes out (SyncClock.tick; in-process at its delivery, ``now`` the wall
+        time the drives sample at): the slots the pacer's clock moved on since the cycle took its slot. The host may
+        stop the loop between the two; the drive samples at the SYNC, so the cycle is moved to the slot it samples
+        in, as a late wake-up is, and the SYNC counts the slots between (docs/timing.md, "A SYNC later than its
+        slot"). A stop's later SYNCs in the same cycle are not asked."""
         pacer = self._pacer
         if not self._sync_armed or pacer is None:
             return 0
         self._sync_armed = False
-        extra = slots_behind(self._now() - pacer.t0, self.dt, self._k)
+        extra = slots_behind((self._now() if now is None else now) - pacer.t0, self.dt, self._k)
         if extra <= 0:
             return 0
         pacer.missed += extra - 1 if self._woke_missed else extra  # slots k .. k+extra-1 got no cycle of their own

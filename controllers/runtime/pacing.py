@@ -76,7 +76,7 @@ def slots_behind(since_t0: float, dt: float, k: int) -> int:
 
 
 def pace_axes(channels: Sequence[Channel], wall: Callable[[], float] | None,
-              slip: Callable[[], int] | None = None) -> None:
+              slip: Callable[[float | None], int] | None = None) -> None:
     """Tell each axis that a paced run starts on ``wall`` (None: it ended), and who says, just before a cycle's
     SYNC goes out, how many slots it slipped since the cycle took its slot (``slip``: ServoLoop); an axis
     without drives of their own clock in this process (SimAxis) has nothing to do (driver/axis.py)."""

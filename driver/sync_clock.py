@@ -35,6 +35,7 @@ class SyncClock:
         #: asked just before the SYNC goes out, in-process at its delivery (the host may stop the loop between the
         #: two; the drive samples at the SYNC, docs/timing.md "A SYNC later than its slot")
         self.slip: Callable[[float | None], int] | None = None
+        self._slip_hook = self._slipped_at  # bound once: handed to the lockstep network every paced tick
         #: SYNCs on the bus since the clock began, up to this cycle's (a skipped slot sends none: ``cycle`` counts
         #: slots, this counts frames); an axis counts its answers against it (CanopenAxis, docs/timing.md)
         self.syncs = 0
@@ -66,7 +67,7 @@ class SyncClock:
                 # in-process the drives sample at the wall time the lockstep network gives them just before the
                 # delivery: the slip is judged at that time, so a stop inside the send is counted too (no counter
                 # byte in-process: the frame does not depend on it)
-                lockstep.at_delivery = self._slipped_at
+                lockstep.at_delivery = self._slip_hook
             try:
                 self.network.send_message(self.cob_id, bytes((self.cycle % SLOT_COUNTER_SPAN + 1,))
                                           if self.slot_counter else b"")

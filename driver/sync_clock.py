@@ -55,24 +55,26 @@ class SyncClock:
     def tick(self) -> None:
         prev, skipped, self._skipped = self.cycle, self._skipped, 0
         if self.periodic is None:
-            lockstep = getattr(self.network, "lockstep", None)
-            at_delivery = self.slip is not None and lockstep is not None and lockstep.paced
-            if self.slip is not None and not at_delivery:
-                skipped += self.slip(None)
             self.cycle += 1 + skipped  # first: what answers this SYNC belongs to the new cycle
             self.syncs += 1
             if skipped:
                 self.late_sync = self.syncs
-            if at_delivery:
-                # in-process the drives sample at the wall time the lockstep network gives them just before the
-                # delivery: the slip is judged at that time, so a stop inside the send is counted too (no counter
-                # byte in-process: the frame does not depend on it)
-                lockstep.at_delivery = self._slip_hook
+            lockstep = None
+            if self.slip is not None:
+                lockstep = getattr(self.network, "lockstep", None)
+                if lockstep is not None and lockstep.paced:
+                    # in-process the drives sample at the wall time the lockstep network gives them just before the
+                    # delivery: the slip is judged at that time, so a stop inside the send is counted too (no counter
+                    # byte in-process: the frame does not depend on it)
+                    lockstep.at_delivery = self._slip_hook
+                else:
+                    lockstep = None
+                    self._slipped_at(None)
             try:
                 self.network.send_message(self.cob_id, bytes((self.cycle % SLOT_COUNTER_SPAN + 1,))
                                           if self.slot_counter else b"")
             finally:
-                if at_delivery and lockstep.at_delivery is not None:  # not delivered here (a callback's send)
+                if lockstep is not None and lockstep.at_delivery is not None:  # not delivered here (a callback's send)
                     lockstep.at_delivery = None
                     self._slipped_at(None)
         else:  # the transport sends it: wait for the next one (a late loop takes the latest: no burst)
@@ -91,6 +93,7 @@ class SyncClock:
             self.network.send_message(HEARTBEAT_BASE + MASTER_NODE_ID, bytes([NmtState.OPERATIONAL]))
 
     def _slipped_at(self, now: float | None) -> None:
+        """The loop's slip at ``now`` (None: now), counted into this cycle's slots (the one place it is applied)."""
         extra = self.slip(now)
         if extra:
             self.cycle += extra

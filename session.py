@@ -691,7 +691,8 @@ def open_here(cfg: Any, names: list[str], *, clock: str, sim: bool, start: dict[
         loop = ServoLoop(channels, {n: m for n, m in motion.items() if m is not None}, clock=clock, stall_s=stall_s,
                          deadlines={n: d.seconds for n, d in hw.deadlines.items()}, ring_s=ring_s,
                          fault_dir=fault_dir, gc_control=gc_control, cpu=cpu, realtime=realtime, gil_switch=gil_switch,
-                         ring=state.ring if state else None, collect_while_enabled=not shared)
+                         ring=state.ring if state else None, collect_while_enabled=not shared,
+                         drive_account=hw.drive_account)
         machine = Machine(hw, loop, cfg)
         if state is not None:
             state.attach(loop)

@@ -34,6 +34,7 @@ from drivectl.driver.network import (
 )
 from drivectl.driver.units import EffortScale, Encoder
 from drivectl.machine.config import MachineConfig
+from drivectl.plant_emulator.drive_constants import RPDO_TIMEOUT_ERROR
 from drivectl.plant_emulator.faults import FaultInjector, FaultSpec, FaultSpecError, FaultyBus
 from drivectl.plant_emulator.models import PlantError, PlantSpec, load_plant
 from drivectl.plant_emulator.node402 import EmulatedDrive
@@ -71,6 +72,15 @@ class Machine:
                 if safe[name] is None and drive.drive.power in SAFE_STATES:
                     safe[name] = j
         return safe
+
+    def drive_account(self, name: str, code: int) -> str | None:
+        """What the emulated drive of axis ``name`` says of the reaction behind its 0x603F ``code``: for its RPDO
+        deadline, whose the time without a setpoint was (SYNCs without one, slots the master skipped, its own
+        clock). None for any other code, and for a real drive, which does not say."""
+        drive = self.drives.get(name)
+        if drive is None or code != RPDO_TIMEOUT_ERROR:
+            return None
+        return drive.deadline_why or None
 
     def close(self) -> None:
         for closer in reversed(self._closers):

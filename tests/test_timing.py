@@ -4,6 +4,7 @@ verdict, a late cycle ridden out and a stall caught, on an injected clock (nothi
 from __future__ import annotations
 
 import math
+import re
 import threading
 
 import numpy as np
@@ -111,7 +112,8 @@ def _sim_loop(tmp_path, stall, hold=None, when=None, ring_s=5.0, late=None, axis
     ch = Channel(m.axes[axis], make_controller(law[0], cfg.cycle_s, law[1], plant=m.specs[axis], axis=axis), None,
                  ac.limits)
     loop = ServoLoop([ch], clock="wall", stall_s=None, deadlines={axis: m.deadlines[axis].seconds}, now=clock.now,
-                     sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False, ring_s=ring_s)
+                     sleep=sleep, fault_dir=tmp_path, gc_control=False, gil_switch=False, ring_s=ring_s,
+                     drive_account=m.drive_account)
     seen["clock"] = clock
     loop.start()
     rt = loop.axes[axis]
@@ -203,6 +205,12 @@ def test_a_host_stop_inside_a_sync_s_delivery_runs_on_the_in_process_drive_and_i
         f = loop.faults[0]
         assert "0x8250" in f.detail, f.detail  # the drive's RPDO deadline, not the master's following error
         assert drive.drive.free_steps - seen["steps"] >= 17  # the gap ran on the drive's plant
+        # the fault keeps the drive's own account of the deadline: the gap was its own clock's, not a late master's
+        own = re.search(r"its drive: .*; since the last one: (\d+) SYNC\(s\), (\d+) slot\(s\) the master skipped .*, "
+                        r"(\d+) cycle\(s\) on the drive's own clock", f.detail)
+        assert own is not None, f.detail
+        assert int(own[2]) == 0 and int(own[3]) >= 17, f.detail
+        assert m.drive_account("x", 0x8130) is None  # only the RPDO deadline has an account
         assert f.safe_state["x"].split(" (")[0] in ("Switch On Disabled", "Fault")
     finally:
         loop.close()

@@ -130,6 +130,7 @@ class ServoLoop:
         ring: Callable[[str, int], Ring] | None = None,
         on_cycle: Callable[[], None] | None = None,
         collect_while_enabled: bool = True,
+        drive_account: Callable[[str, int], str | None] | None = None,
     ):
         if clock not in CLOCKS:
             raise ValueError(f"loop: clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
@@ -166,6 +167,9 @@ class ServoLoop:
         self.on_cycle = on_cycle
         #: False: no collection at all while an axis is enabled (the loop's own process: nothing else allocates)
         self.collect_while_enabled = collect_while_enabled
+        #: ``drive_account(axis, 0x603F)``: what the axis's drive says of its own reaction (an emulated drive's
+        #: account of its RPDO deadline, machine/build.py), added to the fault's detail; a real drive says nothing
+        self.drive_account = drive_account
         self._rts = list(self.axes.values())
         self._channels = [rt.ch for rt in self._rts]
         #: every bus access of the user's side (SDO) takes it; the loop holds it during a cycle
@@ -519,6 +523,10 @@ class ServoLoop:
             stop_channels(self._channels, fault, on_cycle=self._stop_cycle)
         except Exception as exc:  # noqa: BLE001 - the stop must not kill the loop; say so in the fault
             fault.detail += f"; the stop itself failed: {exc}"
+        if self.drive_account is not None and fault.error_code is not None:
+            said = self.drive_account(fault.axis, fault.error_code)
+            if said:
+                fault.detail += f"; its drive: {said}"
         self.faults.append(fault)
         for rt in self._rts:
             was_on = rt.state is not AxisState.OFF

@@ -222,8 +222,8 @@ def main() -> int:
             reply.send(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
         return 1
     if spec["opts"]["clock"] == "wall":
-        granted["gc"] = ("frozen heap, automatic collection off; none at all while an axis is enabled, young "
-                         "generation in the slack otherwise (the loop's own process)")
+        granted["gc"] = ("frozen heap, automatic collection off; none at all while an axis is enabled or "
+                         "enabling, young generation in the slack otherwise (the loop's own process)")
     served = Served(machine, granted)
     _Manager.register("served", callable=lambda: served)
     server = _Manager(address=spec["address"], authkey=spec["authkey"]).get_server()

@@ -314,6 +314,7 @@ def test_the_loop_never_scans_the_old_heap_while_an_axis_is_enabled():
     from types import SimpleNamespace
 
     import drivectl
+    from drivectl.controllers.runtime.loop import AxisState
 
     with drivectl.connect(axes=["x"], clock="lockstep") as m:
         loop = m.loop
@@ -323,8 +324,14 @@ def test_the_loop_never_scans_the_old_heap_while_an_axis_is_enabled():
             m.axes["x"].enable()
             loop._collect(pacer, 60_000)
             assert gc.get_stats()[2]["collections"] == full and gc.get_freeze_count() >= frozen
+            # an axis on its way in counts as enabled: its drive may be in Operation Enabled a cycle before the
+            # loop sees it there, and its RPDO deadline runs from then
             m.axes["x"].disable()
+            loop.axes["x"].state = AxisState.ENABLING
             loop._collect(pacer, 120_000)
+            assert gc.get_stats()[2]["collections"] == full
+            loop.axes["x"].state = AxisState.OFF
+            loop._collect(pacer, 180_000)
             assert gc.get_stats()[2]["collections"] == full + 1
         finally:
             gc.unfreeze()

@@ -165,7 +165,8 @@ class ServoLoop:
             for ch in channels}
         #: called at the end of every cycle, a stop's too (the loop's own process publishes its status there)
         self.on_cycle = on_cycle
-        #: False: no collection at all while an axis is enabled (the loop's own process: nothing else allocates)
+        #: False: no collection at all while an axis is enabled or enabling (the loop's own process: nothing else
+        #: allocates)
         self.collect_while_enabled = collect_while_enabled
         #: ``drive_account(axis, 0x603F)``: what the axis's drive says of its own reaction (an emulated drive's
         #: account of its RPDO deadline, machine/build.py), added to the fault's detail; a real drive says nothing
@@ -672,7 +673,9 @@ class ServoLoop:
         slack = pacer.t0 + k * self.dt - self._now()
         if slack < 0.5 * self.dt:
             return
-        if not self.collect_while_enabled and any(rt.state is AxisState.SERVO for rt in self._rts):
+        # ENABLING counts as enabled: its drive may already be in Operation Enabled, its RPDO deadline running
+        powered = any(rt.state is not AxisState.OFF for rt in self._rts)
+        if not self.collect_while_enabled and powered:
             return
         t0 = self._now()
         # young every 0.1 s, middle every 10 s; once a minute what survived those: scanned when no axis is
@@ -680,7 +683,7 @@ class ServoLoop:
         # one is: a full collection's time grows with the heap (20-30 ms in a soak after a few minutes, past
         # every deadline), a freeze takes none. Frozen objects are collected again at close (host.py).
         if k % 60_000 == 0:
-            if any(rt.state is AxisState.SERVO for rt in self._rts):
+            if powered:
                 gc.collect(1)
                 gc.freeze()
             else:

@@ -229,6 +229,28 @@ def test_the_status_line_shows_the_chosen_channels(tmp_path):
     assert line.startswith("x: position 2 mm following_error ")
 
 
+def test_a_result_starts_on_a_line_of_its_own_after_the_status_line(tmp_path):
+    """The status line is rewritten in place while a command waits; the command's result must erase it first
+    (was: "... max 0.78 msx: move to 10.0000 mm done" on one line in a terminal)."""
+    import drivectl
+    from drivectl.tools.cli.live import StatusLine
+    from drivectl.tools.cli.shell import Shell
+
+    buf = io.StringIO()
+    with drivectl.connect(axes=["x"], fault_dir=tmp_path) as m:
+        live = StatusLine(m, buf, ("position",))
+        sh = Shell(m, out=tmp_path, stdin=io.StringIO(), stdout=buf, interactive=False, live=live)
+        live.refresh()
+        sh.say("x: done")
+        live.refresh()
+        sh.say("x: again")
+    text = buf.getvalue()
+    assert text.count("x: position") == 2
+    for result in ("x: done\n", "x: again\n"):
+        before = text[:text.index(result)]
+        assert before.endswith("\r\x1b[2K"), repr(before[-60:])  # the status line erased just before it
+
+
 def test_a_capture_pending_at_the_end_fills_or_is_named(monkeypatch, capsys, tmp_path):
     # triggered by the move but 300 ms of post-trigger samples still to come when the script ends: filled
     cap = tmp_path / "late.csv"

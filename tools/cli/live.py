@@ -56,6 +56,9 @@ class QuietView:
     def refresh(self) -> None:
         pass
 
+    def clear(self) -> None:
+        pass
+
     def close(self) -> None:
         pass
 
@@ -122,6 +125,9 @@ class WindowView:
 
     def refresh(self) -> None:
         pass  # the sampler feeds the window on its own
+
+    def clear(self) -> None:
+        pass  # nothing of it is in the terminal
 
     def close(self) -> None:
         self._stop.set()

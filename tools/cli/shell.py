@@ -74,6 +74,8 @@ class Shell(cmd.Cmd):
 
     # -- the frame around every command ----------------------------------------------------------------
     def say(self, line: str) -> None:
+        if self.live is not None:  # a result starts on a line of its own, not after the status line
+            self.live.clear()
         self.stdout.write(line + "\n")
         self.stdout.flush()
 

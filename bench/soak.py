@@ -27,6 +27,11 @@ Target: 0 faults over 30 minutes, both ways.
 (across: against an emulator of its own) beside the same hogs, and the soak runs at the cycle it recommends
 (docs/timing.md, "The cycle doctor recommends"); the stderr line "cycle ..." says which it was.
 
+``--cyclictest``: cyclictest (rt-tests) runs beside the soak, one real-time thread per CPU at 1 kHz
+(``cyclictest -m -p 49 -i 1000 -t N -a -q --spike=10000``), and the stderr line "host stops" lists every wake-up
+it saw 10 ms late or more, with how many faults came at one (docs/soaks.md: the host stops this VM now and
+then, past the axes' deadlines; this says which faults were those). Needs root for its priority.
+
 ``--loop``: where the master's loop runs (``connect(loop=...)``, default process: issue 39 point 1); the
 0.5 s SIGSTOP then stops the loop's process. The line on stderr names it.
 """
@@ -38,6 +43,7 @@ import json
 import os
 import random
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -101,10 +107,50 @@ def steal_line(r: dict) -> str:
             f"{near} of {len(at)}")
 
 
+#: cyclictest's spike threshold (us): below every axis's deadline, above the host's ordinary late wake-ups
+SPIKE_US = 10_000
+#: a fault this close after the end of a host stop (s), or during it, was that stop's
+STOP_SLACK_S = 0.010
+_SPIKE = re.compile(r"^T:\s*(\d+)\s+Spike:\s*(\d+):\s*TS:\s*(\d+)", re.M)
+
+
+def _cyclictest(cpus: int):
+    """cyclictest beside the soak, one real-time thread per CPU; its spikes are printed as they come."""
+    return subprocess.Popen(["cyclictest", "-m", "-p", "49", "-i", "1000", "-t", str(cpus), "-a", "-q",
+                             f"--spike={SPIKE_US}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def cyclictest_spikes(text: str) -> list[tuple[int, float, float]]:
+    """cyclictest's spikes: (thread, how late in s, when it woke in s of CLOCK_MONOTONIC), each once (it prints
+    them as they come and again at its end)."""
+    seen = {(int(t), int(lat), int(ts)) for t, lat, ts in _SPIKE.findall(text)}
+    return sorted(((t, lat * 1e-6, ts * 1e-6) for t, lat, ts in seen), key=lambda s: s[2])
+
+
+def at_host_stops(fault_at: list[float], spikes: list[tuple[int, float, float]]) -> int:
+    """How many faults came during a stop cyclictest saw, or within STOP_SLACK_S after it ended (its wake-up)."""
+    return sum(any(ts - late <= f <= ts + STOP_SLACK_S for _, late, ts in spikes) for f in fault_at)
+
+
+def host_stops_line(r: dict) -> str:
+    """The host's stops cyclictest saw beside the soak, and which faults came at one."""
+    spikes, at = r["_spikes"], r["_fault_at"]
+    if r.get("_cyclictest_error"):
+        return f"host stops: cyclictest failed: {r['_cyclictest_error']}"
+    if spikes is None:
+        return "host stops: cyclictest did not run (--cyclictest)"
+    worst = max((late for _, late, _ in spikes), default=0.0)
+    listed = ", ".join(f"{late * 1e3:.1f} ms on CPU {t} at {ts:.3f} s" for t, late, ts in spikes[:12])
+    return (f"host stops: cyclictest saw {len(spikes)} wake-up(s) {SPIKE_US / 1e3:g} ms late or more (worst "
+            f"{worst * 1e3:.1f} ms){': ' + listed if listed else ''}; faults at one: {at_host_stops(at, spikes)} "
+            f"of {len(at)}")
+
+
 def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0.5, quiet: bool = False,
-              cycle_s: float | None = 0.001, hogs: int = 1, loop: str = "process") -> dict:
+              cycle_s: float | None = 0.001, hogs: int = 1, loop: str = "process", cyclictest: bool = False) -> dict:
     """The wall-clock soak (see the module text); returns its figures and the stall's outcome.
-    ``cycle_s`` None: the cycle ``drivectl doctor`` recommends on the same set-up beside the same hogs."""
+    ``cycle_s`` None: the cycle ``drivectl doctor`` recommends on the same set-up beside the same hogs.
+    ``cyclictest``: run it beside the soak (after doctor's probe, to the end)."""
     import multiprocessing
 
     import drivectl
@@ -131,6 +177,7 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
     cfg = load_config(config)
     polls, done, failed, fault_lines, refusals, fault_at = [0], 0, 0, [], [0], []
     rises, stolen, stop_steal = [], [0.0], threading.Event()
+    ct = _cyclictest(os.cpu_count() or 1) if cyclictest else None  # here: the finally below ends it
     threading.Thread(target=_steal_sampler, args=(stop_steal, rises, stolen), daemon=True).start()
     try:
         with drivectl.connect(cfg, clock="wall", fault_dir=tmp, loop=loop) as m:
@@ -201,6 +248,10 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
         if emu is not None:
             emu.send_signal(signal.SIGTERM)
             emu.communicate(timeout=30)
+        ct_out = None
+        if ct is not None:
+            ct.send_signal(signal.SIGINT)
+            ct_out = ct.communicate(timeout=30)[0]
     slots = max(st["cycles"] - st0["cycles"] + st["skipped_cycles"] - st0["skipped_cycles"], 1)
     return {"minutes": minutes, "hogs": hogs, "faults": st["faults"] - st0["faults"],
             "missed_fraction": (st["missed_deadlines"] - st0["missed_deadlines"]) / slots,
@@ -208,7 +259,9 @@ def wall_soak(minutes: float, *, across: bool, seed: int = 1, stall_s: float = 0
             "moves_done": done, "moves_failed": failed, "_refusals": refusals[0], "_stall": stall,
             "_status": st, "_polls": polls[0], "_faults": fault_lines,
             "_steal_rises": rises, "_steal_total_s": stolen[0], "_fault_at": fault_at, "_cycle_s": cycle_s,
-            "_doctor": doctor, "_drive_lines": drive_lines(tmp / "emulator.log"), "_holds": holds}
+            "_doctor": doctor, "_drive_lines": drive_lines(tmp / "emulator.log"), "_holds": holds,
+            "_spikes": None if ct_out is None else cyclictest_spikes(ct_out),
+            "_cyclictest_error": None if ct_out is None or "Max:" in ct_out else (ct_out.strip() or "no output")[-300:]}
 
 
 def _holds(m, rest_s: float = 0.5, hold_s: float = 1.0) -> dict:
@@ -366,12 +419,16 @@ def main() -> None:
                     help="--wall: the servo cycle in s (default 0.001; longer: the way out where a host cannot keep "
                     "it), or 'doctor': the cycle drivectl doctor recommends on the same set-up beside the hogs")
     ap.add_argument("--hog", type=int, default=1, help="--wall: CPU-bound processes beside the soak (default 1)")
+    ap.add_argument("--cyclictest", action="store_true",
+                    help="--wall: cyclictest beside the soak; which faults came at the host's stops (needs root)")
     ap.add_argument("--loop", choices=("process", "thread"), default="process",
                     help="--wall: the loop in its own process (default) or a thread of this one")
     args = ap.parse_args()
     # a SIGTERM (or a SIGINT where a background start ignores it) ends the soak as Ctrl-C does: through the
     # cleanup, so the emulator and the hogs end with it instead of running on as orphans
     signal.signal(signal.SIGTERM, _interrupted)
+    if args.cyclictest and not args.wall:
+        ap.error("--cyclictest: only with --wall (the lockstep soak runs on simulated time)")
     if args.wall:
         if args.hog < 0:
             ap.error(f"--hog: must be 0 or more, got {args.hog}")
@@ -383,8 +440,10 @@ def main() -> None:
                 ap.error(f"--cycle-s: expected seconds or 'doctor', got {args.cycle_s!r}")
             if not (0.0005 <= cycle_s <= 0.01):
                 ap.error(f"--cycle-s: must be within 0.0005..0.01 s, got {args.cycle_s}")
+        if args.cyclictest and shutil.which("cyclictest") is None:
+            ap.error("--cyclictest: no cyclictest on PATH (Debian: apt-get install rt-tests)")
         r = wall_soak(args.minutes, across=args.across, seed=args.seed, quiet=args.json, cycle_s=cycle_s,
-                      hogs=args.hog, loop=args.loop)
+                      hogs=args.hog, loop=args.loop, cyclictest=args.cyclictest)
         if args.json:
             print(json.dumps({k: v for k, v in r.items() if not k.startswith("_")}))
             for line in list(dict.fromkeys(r["_faults"]))[:20]:  # what went wrong, beside the one object
@@ -395,6 +454,7 @@ def main() -> None:
             print(stall_line(r["_stall"]), file=sys.stderr)
             print(f"({args.loop} loop) " + loop_line(r["_status"]), file=sys.stderr)
             print(steal_line(r), file=sys.stderr)
+            print(host_stops_line(r), file=sys.stderr)
             print(cycle_line(r), file=sys.stderr)
             return
         st, stall = r["_status"], r["_stall"]
@@ -417,6 +477,7 @@ def main() -> None:
         print(stall_line(stall))
         print(loop_line(st))
         print(steal_line(r))
+        print(host_stops_line(r))
         print(cycle_line(r))
         return
     r = run_soak(60.0 * args.minutes, seed=args.seed, progress=not args.json)

@@ -229,6 +229,25 @@ def test_the_status_line_shows_the_chosen_channels(tmp_path):
     assert line.startswith("x: position 2 mm following_error ")
 
 
+def test_the_status_line_fits_one_row_of_the_terminal(tmp_path, monkeypatch):
+    """Wider than the terminal, it would wrap, and the carriage return would rewrite only its last row: each
+    refresh would leave a row behind (seen with x, y and z in a 160-column terminal)."""
+    import drivectl
+    from drivectl.tools.cli.live import StatusLine
+
+    buf = io.StringIO()
+    with drivectl.connect(fault_dir=tmp_path) as m:
+        view = StatusLine(m, buf, ("position", "following_error", "effort"))
+        monkeypatch.setenv("COLUMNS", "60")
+        view.refresh()
+        narrow = buf.getvalue().split("\x1b[2K")[-1]
+        monkeypatch.setenv("COLUMNS", "400")
+        view.refresh()
+        wide = buf.getvalue().split("\x1b[2K")[-1]
+    assert len(narrow) == 59 and narrow.endswith("~") and narrow.startswith("x: position ")
+    assert "z: position" in wide and not wide.endswith("~")  # room enough: the whole line
+
+
 def test_a_result_starts_on_a_line_of_its_own_after_the_status_line(tmp_path):
     """The status line is rewritten in place while a command waits; the command's result must erase it first
     (was: "... max 0.78 msx: move to 10.0000 mm done" on one line in a terminal)."""

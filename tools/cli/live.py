@@ -12,6 +12,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import shutil
 import threading
 from collections import deque
 from typing import Any, TextIO
@@ -83,7 +84,13 @@ class StatusLine:
         if loop.clock == "wall" and loop.latency.n:
             lat = loop.latency
             parts.append(f"late p99.9 {lat.percentile(99.9) * 1e3:.2f} max {lat.max * 1e3:.2f} ms")
-        self.out.write("\r\x1b[2K" + "  |  ".join(parts))
+        # one row only: a line wider than the terminal wraps, and the carriage return then rewrites only its
+        # last row, leaving a trail of old ones (read each time: the window may have been resized)
+        width = shutil.get_terminal_size((80, 24)).columns
+        text = "  |  ".join(parts)
+        if len(text) > width - 1:
+            text = text[:max(width - 2, 0)] + "~"
+        self.out.write("\r\x1b[2K" + text)
         self.out.flush()
         self._shown = True
 
